@@ -1,0 +1,23 @@
+# The two commands of the README:  make demo  (install + main job)  and  make test  (install + tests).
+PY := .venv/bin/python
+STAMP := .venv/.installed
+
+.PHONY: install test demo bench clean
+
+$(STAMP): pyproject.toml scripts/install.sh
+	bash scripts/install.sh
+	touch $(STAMP)
+
+install: $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -n 2 -q tests
+
+demo: $(STAMP)
+	$(PY) -m infer.demo
+
+bench: $(STAMP)
+	for f in bench/*.py; do $(PY) $$f || exit 1; done
+
+clean:
+	rm -rf .venv build *.egg-info .pytest_cache

@@ -1,0 +1,103 @@
+"""Pinhole cameras and rigid transforms (OpenCV convention, millimetres).
+
+Pixel convention, used by every module of the project:
+
+* ``K`` maps to *pixel-centre* coordinates, as in OpenCV: the centre of pixel (column i,
+  row j) is at (u, v) = (i, j). A projected point belongs to pixel ``round(u), round(v)``.
+* Boxes (xyxy) are in *pixel-edge* coordinates, as in BOP and COCO: the image spans
+  [0, W] x [0, H] and pixel (i, j) covers [i, i+1) x [j, j+1). A BOP ``bbox`` (x, y, w, h)
+  is the box (x, y, x + w, y + h). A projected point's box coordinate is (u + 0.5, v + 0.5).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+Array = jax.Array
+
+
+def transform(T: Array, points: Array) -> Array:
+    """Apply rigid transforms: T [..., 4, 4], points [..., N, 3] -> [..., N, 3]."""
+    T = jnp.asarray(T)
+    points = jnp.asarray(points)
+    return jnp.einsum("...ij,...nj->...ni", T[..., :3, :3], points) + T[..., None, :3, 3]
+
+
+def invert(T: Array) -> Array:
+    """Invert rigid transforms [..., 4, 4] exactly (R^T, -R^T t), without a general inverse."""
+    T = jnp.asarray(T)
+    Rt = jnp.swapaxes(T[..., :3, :3], -1, -2)
+    t = -jnp.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
+    return make_transform(Rt, t)
+
+
+def make_transform(R: Array, t: Array) -> Array:
+    """R [..., 3, 3], t [..., 3] -> T [..., 4, 4]."""
+    R = jnp.asarray(R)
+    t = jnp.asarray(t, dtype=R.dtype)
+    top = jnp.concatenate([R, t[..., :, None]], axis=-1)
+    bottom = jnp.broadcast_to(jnp.array([0, 0, 0, 1], dtype=R.dtype), (*top.shape[:-2], 1, 4))
+    return jnp.concatenate([top, bottom], axis=-2)
+
+
+def project(points: Array, K: Array) -> Array:
+    """Project camera-frame points [..., N, 3] with K [..., 3, 3] -> pixel coords [..., N, 2].
+
+    Points at or behind the camera (z <= 0) give meaningless coordinates: mask them with z.
+    """
+    points = jnp.asarray(points)
+    p = jnp.einsum("...ij,...nj->...ni", jnp.asarray(K), points)
+    z = p[..., 2:3]
+    z = jnp.where(jnp.abs(z) < 1e-12, 1e-12, z)
+    return p[..., :2] / z
+
+
+def backproject(uv: Array, depth: Array, K: Array) -> Array:
+    """Lift pixels uv [..., N, 2] at depths z [..., N] to camera-frame points [..., N, 3]."""
+    uv = jnp.asarray(uv)
+    depth = jnp.asarray(depth)
+    uv1 = jnp.concatenate([uv, jnp.ones_like(uv[..., :1])], axis=-1)
+    rays = jnp.einsum("...ij,...nj->...ni", jnp.linalg.inv(jnp.asarray(K)), uv1)
+    # K^-1 [u v 1]^T has z = 1 for any upper-triangular K, so scaling by depth gives z = depth.
+    return rays * depth[..., None]
+
+
+def crop_intrinsics(K: Array, box_xyxy: Array, out_hw: tuple[int, int]) -> Array:
+    """K [..., 3, 3] of the image -> K of the crop ``box_xyxy`` [..., 4] resized to ``out_hw``.
+
+    The box is in pixel-edge coordinates (module docstring); the crop's pixel centres keep the
+    OpenCV convention, so u' = (u + 0.5 - x0) * sx - 0.5 with sx = W' / (x1 - x0).
+    """
+    K = jnp.asarray(K)
+    box = jnp.asarray(box_xyxy, dtype=K.dtype)
+    out_h, out_w = out_hw
+    sx = out_w / (box[..., 2] - box[..., 0])
+    sy = out_h / (box[..., 3] - box[..., 1])
+    zero, one = jnp.zeros_like(sx), jnp.ones_like(sx)
+    S = jnp.stack(
+        [
+            jnp.stack([sx, zero, (0.5 - box[..., 0]) * sx - 0.5], -1),
+            jnp.stack([zero, sy, (0.5 - box[..., 1]) * sy - 0.5], -1),
+            jnp.stack([zero, zero, one], -1),
+        ],
+        -2,
+    )
+    return S @ K
+
+
+def look_at(eye: Array, target: Array, up: Array = (0.0, 0.0, 1.0)) -> Array:
+    """T_cam_world [4, 4] of an OpenCV camera at ``eye`` looking at ``target``.
+
+    ``up`` is the world direction that appears upwards in the image (camera -y); it must not
+    be parallel to the viewing direction.
+    """
+    eye, target = jnp.asarray(eye, jnp.float32), jnp.asarray(target, jnp.float32)
+    up = jnp.asarray(up, jnp.float32)
+    z = target - eye
+    z = z / jnp.linalg.norm(z, axis=-1, keepdims=True)
+    x = jnp.cross(z, up)
+    x = x / jnp.linalg.norm(x, axis=-1, keepdims=True)
+    y = jnp.cross(z, x)
+    R_world_cam = jnp.stack([x, y, z], axis=-1)
+    return invert(make_transform(R_world_cam, eye))
