@@ -1,0 +1,162 @@
+"""ViT backbone: variant table, parameter count, position embeddings, attention, extra tokens."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from threept_jax.models.configs import DetectorConfig, ViTConfig, decode_variant
+from threept_jax.models.vit import Attention, ViT, count_params, posemb_sincos_2d, resize_posemb
+
+
+def vit_param_count(width, depth, mlp, patch, num_patches, registers=0):
+    """Hand count of a class-token-free pre-LN ViT (no head)."""
+    patch_embed = patch * patch * 3 * width + width
+    posemb = num_patches * width
+    block = 2 * 2 * width + 4 * (width * width + width) + 2 * width * mlp + mlp + width
+    return patch_embed + posemb + registers * width + depth * block + 2 * width
+
+
+@pytest.fixture(scope="module")
+def tiny_vit():
+    # Same sizes as the tiny detector's tower, so both files share compiled initialisers.
+    return ViT(ViTConfig.from_variant("tiny", image_size=64, num_registers=1), rngs=nnx.Rngs(0))
+
+
+@pytest.mark.parametrize("variant, expected", [
+    ("B/16", (768, 12, 12, 3072, 16)),
+    ("S/16", (384, 12, 6, 1536, 16)),
+    ("L/14", (1024, 24, 16, 4096, 14)),
+    ("tiny", (64, 2, 2, 256, 16)),
+    ("tiny/8", (64, 2, 2, 256, 8)),
+])
+def test_decode_variant(variant, expected):
+    d = decode_variant(variant)
+    assert (d["width"], d["depth"], d["num_heads"], d["mlp_dim"], d["patch_size"]) == expected
+
+
+@pytest.mark.parametrize("bad, msg", [("X/16", "unknown ViT size"), ("B", "needs a patch size"),
+                                      ("B/x", "positive integer"), ("", "string")])
+def test_decode_variant_errors(bad, msg):
+    with pytest.raises(ValueError, match=msg):
+        decode_variant(bad)
+
+
+def test_config_errors_name_the_fix():
+    with pytest.raises(ValueError, match="use 518"):
+        DetectorConfig(variant="L/14", image_size=512)
+    with pytest.raises(ValueError, match="divisible"):
+        ViTConfig(width=65, depth=1, num_heads=2, mlp_dim=8, patch_size=4, image_size=8)
+    assert DetectorConfig(variant="L/14").image_size == 518
+    assert DetectorConfig(variant="B/16").image_size == 512
+
+
+def test_b16_parameter_count_matches_hand_count():
+    # ViT-B/16 at 224 without class token and head: 85.8M (86.6M with the 1000-class head).
+    abstract = nnx.eval_shape(lambda: ViT(ViTConfig.from_variant("B/16"), rngs=nnx.Rngs(0)))
+    expected = vit_param_count(768, 12, 3072, 16, 196)
+    assert expected == 85_797_120
+    assert count_params(abstract) == expected
+
+
+def test_learned_posemb_exact_at_native_grid_and_bilinear_elsewhere(tiny_vit):
+    np.testing.assert_array_equal(np.asarray(tiny_vit.position_embedding((4, 4))),
+                                  np.asarray(tiny_vit.posemb[...]))
+    # 2x2 -> 4x4 upsampling against a float64 half-pixel-centre bilinear reference.
+    pe = np.random.default_rng(0).normal(size=(4, 3))
+    got = np.asarray(resize_posemb(jnp.asarray(pe, jnp.float32), (2, 2), (4, 4))).reshape(4, 4, 3)
+    src = pe.reshape(2, 2, 3)
+    ref = np.zeros((4, 4, 3))
+    for i in range(4):
+        for j in range(4):
+            y = np.clip((i + 0.5) / 2 - 0.5, 0, 1)
+            x = np.clip((j + 0.5) / 2 - 0.5, 0, 1)
+            y0, x0 = int(np.floor(y)), int(np.floor(x))
+            y1, x1 = min(y0 + 1, 1), min(x0 + 1, 1)
+            fy, fx = y - y0, x - x0
+            ref[i, j] = ((1 - fy) * ((1 - fx) * src[y0, x0] + fx * src[y0, x1])
+                         + fy * ((1 - fx) * src[y1, x0] + fx * src[y1, x1]))
+    np.testing.assert_allclose(got, ref, atol=1e-6)
+
+
+def test_sincos_posemb_depends_only_on_offset():
+    pe = np.asarray(posemb_sincos_2d(6, 7, 32), np.float64).reshape(6, 7, 32)
+    a = pe[1, 2] @ pe[3, 5]
+    b = pe[2, 0] @ pe[4, 3]
+    np.testing.assert_allclose(a, b, rtol=1e-5)
+    assert pe.shape == (6, 7, 32)
+
+
+def test_attention_matches_float64_reference_with_mask():
+    att = Attention(16, 4, dtype=jnp.float32, param_dtype=jnp.float32, rngs=nnx.Rngs(1))
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(2, 3, 16)).astype(np.float32)
+    ctx = rng.normal(size=(2, 5, 16)).astype(np.float32)
+    mask = np.array([[1, 1, 1, 0, 0], [1, 0, 1, 1, 1]], bool)
+    got = np.asarray(nnx.jit(lambda m, *a: m(*a))(att, x, ctx, mask))
+
+    def lin(mod, v):
+        k = np.asarray(mod.kernel[...], np.float64)
+        b = np.asarray(mod.bias[...], np.float64)
+        n = k.ndim - b.ndim  # number of contracted input axes
+        return np.tensordot(v, k, axes=(list(range(v.ndim - n, v.ndim)), list(range(n)))) + b
+
+    q, k, v = (lin(m, a.astype(np.float64)) for m, a in
+               ((att.query, x), (att.key, ctx), (att.value, ctx)))  # [B, N, H, Dh]
+    logits = np.einsum("bnhd,bshd->bhns", q, k) / np.sqrt(4)
+    logits = np.where(mask[:, None, None], logits, -np.inf)
+    w = np.exp(logits - logits.max(-1, keepdims=True))
+    w /= w.sum(-1, keepdims=True)
+    y = np.einsum("bhns,bshd->bnhd", w, v)
+    ref = lin(att.out, y)
+    np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-5)
+
+
+@nnx.jit
+def _forward(model, x, extra=None, extra_mask=None):
+    return model(x, extra, extra_mask)
+
+
+def test_extra_tokens_join_attention(tiny_vit):
+    x = jax.random.uniform(jax.random.key(0), (2, 32, 32, 3))
+    extra = jax.random.normal(jax.random.key(1), (2, 3, 64))
+    plain = _forward(tiny_vit, x)
+    fused = _forward(tiny_vit, x, extra, jnp.ones((2, 3), bool))
+    hidden = _forward(tiny_vit, x, extra, jnp.zeros((2, 3), bool))
+    assert fused["patch_tokens"].shape == (2, 4, 64)
+    assert fused["extra_tokens"].shape == (2, 3, 64)
+    assert fused["register_tokens"].shape == (2, 1, 64)
+    # Masked extra tokens must not influence the patches; unmasked ones must.
+    np.testing.assert_allclose(hidden["patch_tokens"], plain["patch_tokens"], atol=1e-5)
+    assert np.abs(np.asarray(fused["patch_tokens"]) - plain["patch_tokens"]).max() > 1e-3
+    # Any patch-aligned size works (position embedding follows the grid).
+    half = nnx.eval_shape(lambda m, v: m(v), tiny_vit, x[:, :16])
+    assert half["patch_tokens"].shape == (2, 2, 64)
+    with pytest.raises(ValueError, match="multiple of the patch size"):
+        nnx.eval_shape(lambda m, v: m(v), tiny_vit, x[:, :20])
+
+
+def test_bfloat16_matches_float32_and_remat_checkpoints_blocks(tiny_vit):
+    x = jax.random.uniform(jax.random.key(0), (2, 32, 32, 3))
+    kw = dict(image_size=64, num_registers=1)
+    # Same seed as the fixture, so same float32 parameters; only the compute dtype differs.
+    bf = ViT(ViTConfig.from_variant("tiny", dtype="bfloat16", **kw), rngs=nnx.Rngs(0))
+    out = _forward(bf, x)["patch_tokens"]
+    assert out.dtype == jnp.bfloat16 and np.isfinite(np.asarray(out, np.float32)).all()
+    assert bf.blocks[0].mlp.fc1.kernel[...].dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(out, np.float32), _forward(tiny_vit, x)["patch_tokens"],
+                               atol=0.1)
+    # remat wraps every block in a checkpoint in the backward pass (nothing else changes).
+    rem = ViT(ViTConfig.from_variant("tiny", remat=True, **kw), rngs=nnx.Rngs(0))
+
+    def num_checkpoints(model):
+        graphdef, params = nnx.split(model)
+
+        def loss(p):
+            return jnp.sum(nnx.merge(graphdef, p)(x)["patch_tokens"])
+
+        eqns = jax.make_jaxpr(jax.grad(loss))(params).jaxpr.eqns
+        return sum(e.primitive.name in ("remat2", "checkpoint") for e in eqns)
+
+    assert num_checkpoints(rem) == 2 and num_checkpoints(tiny_vit) == 0

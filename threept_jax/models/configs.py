@@ -1,0 +1,252 @@
+"""Frozen model configurations and the ViT size table.
+
+Variants are named as in big_vision's ``vit.py``: ``"<size>/<patch>"`` (``"B/16"``, ``"L/14"``),
+with the size looked up in :data:`VIT_SIZES`. ``"tiny"`` (width 64, depth 2) exists for CPU
+tests and demos; its patch size defaults to 16 and may be given (``"tiny/8"``).
+
+Shapes use the letter legend of DESIGN.md: B batch, O objects, P patches, T templates, D width.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+#: size name -> (width, depth, num_heads, mlp_dim). Ti/S/M/B/L/H are the standard ViT sizes
+#: (Dosovitskiy et al. 2021; Steiner et al. 2021; big_vision ``decode_variant``).
+VIT_SIZES: dict[str, tuple[int, int, int, int]] = {
+    "tiny": (64, 2, 2, 256),
+    "Ti": (192, 12, 3, 768),
+    "S": (384, 12, 6, 1536),
+    "M": (512, 12, 8, 2048),
+    "B": (768, 12, 12, 3072),
+    "L": (1024, 24, 16, 4096),
+    "H": (1280, 32, 16, 5120),
+}
+
+#: Patch size used when a variant names no patch (only sensible for the test model).
+_DEFAULT_PATCH = {"tiny": 16}
+
+#: Tile side the paper's pan-and-scan uses; image sizes default to the nearest patch multiple.
+PAPER_TILE_SIZE = 512
+
+
+def decode_variant(variant: str) -> dict[str, int]:
+    """``"B/16"`` -> ``{"width": 768, "depth": 12, "num_heads": 12, "mlp_dim": 3072,
+    "patch_size": 16}``."""
+    if not isinstance(variant, str) or not variant:
+        raise ValueError(f"ViT variant must be a string such as 'B/16', got {variant!r}")
+    size, _, patch = variant.partition("/")
+    if size not in VIT_SIZES:
+        raise ValueError(
+            f"unknown ViT size {size!r} in variant {variant!r}; known sizes: "
+            f"{', '.join(VIT_SIZES)} (write e.g. 'B/16' or 'tiny')"
+        )
+    if patch:
+        if not patch.isdigit() or int(patch) < 1:
+            raise ValueError(f"patch size in {variant!r} must be a positive integer, e.g. 'B/16'")
+        patch_size = int(patch)
+    elif size in _DEFAULT_PATCH:
+        patch_size = _DEFAULT_PATCH[size]
+    else:
+        raise ValueError(f"variant {variant!r} needs a patch size, e.g. '{size}/16'")
+    width, depth, num_heads, mlp_dim = VIT_SIZES[size]
+    return dict(width=width, depth=depth, num_heads=num_heads, mlp_dim=mlp_dim,
+                patch_size=patch_size)
+
+
+def _dtype(x: Any) -> np.dtype:
+    try:
+        return jnp.dtype(x)
+    except TypeError as e:
+        raise ValueError(f"not a dtype: {x!r} (use e.g. 'float32' or 'bfloat16')") from e
+
+
+def nearest_patch_multiple(size: int, patch_size: int) -> int:
+    """The multiple of ``patch_size`` nearest to ``size`` (ties go up), at least one patch."""
+    return max(patch_size, int(np.floor(size / patch_size + 0.5)) * patch_size)
+
+
+@dataclasses.dataclass(frozen=True)
+class ViTConfig:
+    """A plain pre-LayerNorm ViT encoder (no class token).
+
+    ``image_size`` is the *native* input side: the learned position embedding has
+    ``(image_size // patch_size)**2`` rows and is bilinearly resized for any other grid.
+    ``num_registers`` learned register tokens (Darcet et al., "Vision Transformers Need
+    Registers", 2024) join the sequence and are dropped from the patch outputs.
+    ``dtype`` is the compute dtype, ``param_dtype`` the storage dtype; layer norms, softmax and
+    the position-embedding resize always run in float32. ``attention_impl`` goes to
+    ``jax.nn.dot_product_attention``: ``None``/``"xla"`` everywhere, ``"cudnn"`` for cuDNN flash
+    attention on NVIDIA GPUs (bfloat16/float16 compute only).
+    """
+
+    width: int
+    depth: int
+    num_heads: int
+    mlp_dim: int
+    patch_size: int
+    image_size: int = 224
+    num_registers: int = 0
+    posemb: str = "learned"
+    layernorm_epsilon: float = 1e-6
+    attention_impl: str | None = None
+    remat: bool = False
+    dtype: Any = jnp.float32
+    param_dtype: Any = jnp.float32
+
+    def __post_init__(self):
+        object.__setattr__(self, "dtype", _dtype(self.dtype))
+        object.__setattr__(self, "param_dtype", _dtype(self.param_dtype))
+        for name in ("width", "depth", "num_heads", "mlp_dim", "patch_size", "image_size"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"ViTConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if self.num_registers < 0:
+            raise ValueError(f"ViTConfig.num_registers must be >= 0, got {self.num_registers}")
+        if self.width % self.num_heads:
+            raise ValueError(
+                f"ViT width {self.width} is not divisible by num_heads {self.num_heads}"
+            )
+        if self.posemb not in ("learned", "sincos2d"):
+            raise ValueError(f"posemb must be 'learned' or 'sincos2d', got {self.posemb!r}")
+        if self.attention_impl not in (None, "xla", "cudnn"):
+            raise ValueError(
+                f"attention_impl must be None, 'xla' or 'cudnn', got {self.attention_impl!r}"
+            )
+        if self.posemb == "sincos2d" and self.width % 4:
+            raise ValueError(f"sincos2d position embeddings need width % 4 == 0, got {self.width}")
+        if self.image_size % self.patch_size:
+            raise ValueError(
+                f"image_size {self.image_size} is not a multiple of patch_size {self.patch_size}; "
+                f"use {nearest_patch_multiple(self.image_size, self.patch_size)}"
+            )
+
+    @classmethod
+    def from_variant(cls, variant: str, **overrides: Any) -> ViTConfig:
+        """``ViTConfig.from_variant("B/16", image_size=512, dtype="bfloat16")``."""
+        return cls(**{**decode_variant(variant), **overrides})
+
+    @property
+    def native_grid(self) -> tuple[int, int]:
+        g = self.image_size // self.patch_size
+        return (g, g)
+
+    @property
+    def head_dim(self) -> int:
+        return self.width // self.num_heads
+
+
+@dataclasses.dataclass(frozen=True)
+class DetectorConfig:
+    """3PT-D, the early-fusion two-tower detector (DESIGN.md section 1.1).
+
+    Attributes:
+      variant: ViT size and patch, parsed by :func:`decode_variant` (``"tiny"``, ``"S/16"``,
+        ``"B/16"``, ``"L/14"``).
+      image_size: side of the square image tiles fed to ``detect`` (the pan-and-scan tile).
+        ``None`` picks the patch multiple nearest 512 (512 for /16, 518 for /14).
+      render_size: side of the prior and template renders fed to the object tower.
+      num_prior_views: number of fixed prior renders per object (12, icosahedron viewpoints).
+      tokens_per_view: pooled tokens per prior view; each view's patch tokens are reduced by
+        multi-head attention pooling with this many learned probes, so the prior has
+        ``num_prior_views * tokens_per_view`` tokens (4 -> 48 tokens, under 5% of the 1024 patch
+        tokens of a 512 tile at /16).
+      embed_dim: dimension of hypothesis and template embeddings; ``None`` = backbone width.
+      num_registers: register tokens in both towers.
+      posemb: ``"learned"`` (resized bilinearly to any grid) or ``"sincos2d"``.
+      share_backbone: one ViT for both towers (default) or two. Sharing halves the backbone
+        parameters and, more importantly, puts the prior tokens and the image patch tokens in
+        the same feature space before fusion, which suits early fusion and the cosine
+        comparison of hypotheses with templates. OWL-ViT keeps separate towers because its
+        query tower is a text model; ours sees images in both.
+      box_head_layers / presence_head_layers: MLP depths of the heads (OWL-ViT: 3 for boxes).
+      class_prior: initial presence probability (0.01, RetinaNet/OWL-ViT focal-loss prior).
+      logit_scale_init: initial scale of the cosine similarity in orientation logits.
+      attention_impl: ``None``/``"xla"``, or ``"cudnn"`` (flash attention, GPU, bf16/fp16).
+      remat: rematerialise each transformer block in the backward pass.
+      dtype / param_dtype: compute and storage dtypes of every layer.
+    """
+
+    variant: str = "B/16"
+    image_size: int | None = None
+    render_size: int = 224
+    num_prior_views: int = 12
+    tokens_per_view: int = 4
+    embed_dim: int | None = None
+    num_registers: int = 0
+    posemb: str = "learned"
+    share_backbone: bool = True
+    attention_impl: str | None = None
+    box_head_layers: int = 3
+    presence_head_layers: int = 2
+    class_prior: float = 0.01
+    logit_scale_init: float = 10.0
+    remat: bool = False
+    dtype: Any = jnp.float32
+    param_dtype: Any = jnp.float32
+
+    def __post_init__(self):
+        arch = decode_variant(self.variant)
+        p = arch["patch_size"]
+        if self.image_size is None:
+            object.__setattr__(self, "image_size", nearest_patch_multiple(PAPER_TILE_SIZE, p))
+        if self.embed_dim is None:
+            object.__setattr__(self, "embed_dim", arch["width"])
+        object.__setattr__(self, "dtype", _dtype(self.dtype))
+        object.__setattr__(self, "param_dtype", _dtype(self.param_dtype))
+        for name, size in (("image_size", self.image_size), ("render_size", self.render_size)):
+            if size % p:
+                raise ValueError(
+                    f"DetectorConfig.{name}={size} is not a multiple of the patch size {p} of "
+                    f"{self.variant!r}; use {nearest_patch_multiple(size, p)} (the pan-and-scan "
+                    "tile size must match image_size)"
+                )
+        for name in ("num_prior_views", "tokens_per_view", "embed_dim", "box_head_layers",
+                     "presence_head_layers"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"DetectorConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if not 0.0 < self.class_prior < 1.0:
+            raise ValueError(f"class_prior must be in (0, 1), got {self.class_prior}")
+        if self.logit_scale_init <= 0:
+            raise ValueError(f"logit_scale_init must be > 0, got {self.logit_scale_init}")
+        _ = self.vit  # builds (and so validates) the backbone config
+
+    @property
+    def vit(self) -> ViTConfig:
+        """Backbone config; its native size is the tile size (the renders use a resized grid)."""
+        return ViTConfig.from_variant(
+            self.variant,
+            image_size=self.image_size,
+            num_registers=self.num_registers,
+            posemb=self.posemb,
+            attention_impl=self.attention_impl,
+            remat=self.remat,
+            dtype=self.dtype,
+            param_dtype=self.param_dtype,
+        )
+
+    @property
+    def width(self) -> int:
+        return decode_variant(self.variant)["width"]
+
+    @property
+    def patch_size(self) -> int:
+        return decode_variant(self.variant)["patch_size"]
+
+    @property
+    def grid_size(self) -> int:
+        """Patches per side of an image tile."""
+        return self.image_size // self.patch_size
+
+    @property
+    def num_patches(self) -> int:
+        """P, the number of object hypotheses per tile."""
+        return self.grid_size**2
+
+    @property
+    def num_prior_tokens(self) -> int:
+        """Np = num_prior_views * tokens_per_view."""
+        return self.num_prior_views * self.tokens_per_view

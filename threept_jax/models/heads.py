@@ -1,0 +1,96 @@
+"""Small heads of 3PT-D: attention pooling, prediction MLPs and the OWL-ViT box grid prior.
+
+The box head follows OWL-ViT (Minderer et al., ECCV 2022; scenic ``owl_vit/models.py``
+``box_predictor`` and ``utils.compute_box_bias``): each patch token predicts a box as
+``sigmoid(MLP(token) + bias)`` where the bias is the inverse sigmoid of the patch's own centre
+and of one patch's size, so a zero-initialised MLP starts with every patch proposing itself.
+Scenic's bias uses each patch's bottom-right *corner*; we use its centre, which is where a
+patch's own box is centred. Shapes: B batch, N tokens, K probes, P patches, D width.
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from threept_jax.models.vit import Attention, LayerNorm, Mlp
+
+Array = jax.Array
+
+
+def logit(p: float) -> float:
+    """Inverse sigmoid of a Python probability, log(p / (1 - p)), as a Python float."""
+    return float(np.log(p) - np.log1p(-p))
+
+
+def box_grid_bias(grid_h: int, grid_w: int) -> Array:
+    """[gh * gw, 4] inverse-sigmoid box prior (cx, cy, w, h) of each patch, row-major.
+
+    Patch (i, j) gets centre ((j + 0.5) / gw, (i + 0.5) / gh) and size (1 / gw, 1 / gh) in
+    normalised image coordinates; the bias is the logit of those numbers.
+    """
+    y, x = np.mgrid[:grid_h, :grid_w].astype(np.float64)
+    cx = (x.reshape(-1) + 0.5) / grid_w
+    cy = (y.reshape(-1) + 0.5) / grid_h
+    w = np.full_like(cx, 1.0 / grid_w)
+    h = np.full_like(cy, 1.0 / grid_h)
+    prior = np.stack([cx, cy, w, h], -1)
+    return jnp.asarray(np.log(prior) - np.log1p(-prior), jnp.float32)
+
+
+class PredictorMLP(nnx.Module):
+    """[..., D] -> [..., out_dim]: ``num_layers`` Linear layers with GELU in between.
+
+    The last layer's kernel is zero and its bias is ``out_bias`` (OWL-ViT ``PredictorMLP``),
+    so at initialisation the output is exactly ``out_bias`` whatever the input.
+    """
+
+    def __init__(self, in_dim: int, out_dim: int, *, num_layers: int, hidden_dim: int | None = None,
+                 out_bias: float = 0.0, dtype: Any, param_dtype: Any, rngs: nnx.Rngs):
+        hidden_dim = hidden_dim or in_dim
+        dims = [in_dim] + [hidden_dim] * (num_layers - 1)
+        self.hidden = nnx.List([
+            nnx.Linear(a, b, dtype=dtype, param_dtype=param_dtype,
+                       kernel_init=nnx.initializers.xavier_uniform(), rngs=rngs)
+            for a, b in itertools.pairwise(dims)
+        ])
+        self.out = nnx.Linear(
+            dims[-1], out_dim, dtype=dtype, param_dtype=param_dtype,
+            kernel_init=nnx.initializers.zeros,
+            bias_init=nnx.initializers.constant(out_bias), rngs=rngs,
+        )
+
+    def __call__(self, x: Array) -> Array:
+        for layer in self.hidden:
+            x = jax.nn.gelu(layer(x))
+        return self.out(x).astype(jnp.float32)
+
+
+class AttentionPool(nnx.Module):
+    """Multi-head attention pooling (MAP, big_vision ``MAPHead``): [B, N, D] -> [B, K, D].
+
+    K learned probe tokens cross-attend to the N input tokens; the result goes through a
+    LayerNorm and a residual MLP. ``mask`` [B, N] hides padded input tokens.
+    """
+
+    def __init__(self, width: int, num_probes: int, num_heads: int, mlp_dim: int, *,
+                 dtype: Any, param_dtype: Any, rngs: nnx.Rngs):
+        self.dtype = dtype
+        init = nnx.initializers.xavier_uniform()
+        self.probes = nnx.Param(init(rngs.params(), (num_probes, width), param_dtype))
+        kw = dict(dtype=dtype, param_dtype=param_dtype, rngs=rngs)
+        self.attn = Attention(width, num_heads, **kw)
+        self.norm = LayerNorm(width, **kw)
+        self.mlp = Mlp(width, mlp_dim, **kw)
+
+    def __call__(self, x: Array, mask: Array | None = None) -> Array:
+        b = x.shape[0]
+        probes = jnp.broadcast_to(self.probes[...].astype(self.dtype)[None],
+                                  (b, *self.probes.shape))
+        y = self.attn(probes, context=x.astype(self.dtype), mask=mask)
+        return y + self.mlp(self.norm(y))

@@ -1,0 +1,249 @@
+"""Pan-and-scan: overlapping square tiles at several scales, box back-mapping and merging NMS.
+
+3PT-D sees fixed-size tiles (512 x 512 in the paper) in which training put objects at 128-350
+px (DESIGN.md section 1.1). A full image is resized by each scale s, cut into overlapping
+tiles, each tile is queried with each object, and the detections are mapped back to the full
+image and merged by NMS across tiles, scales and (optionally) objects.
+
+Conventions: images [H, W, C]; boxes in full-image pixels are xyxy in pixel-edge coordinates
+(the image spans [0, W] x [0, H]); detector boxes are normalised cxcywh within a tile. Scaling
+an image by s maps pixel-edge coordinate x to x * s (half-pixel-centre resampling, as
+``jax.image.resize`` does); because scaled sizes are rounded to whole pixels, each scale's
+exact factors are ``(ws / W, hs / H)``. Tiles extending past the scaled image are padded.
+Shapes: N tiles, P patches per tile, O query objects, K kept detections.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from threept_jax.geometry.boxes import cxcywh_to_xyxy, nms
+
+Array = jax.Array
+
+#: Object sizes (pixels in a tile) the detector is trained for (DESIGN.md section 1.1).
+TRAINED_SIZE_RANGE = (128.0, 350.0)
+
+
+def axis_tile_starts(length: int, tile: int, min_overlap: int) -> np.ndarray:
+    """Start offsets of tiles covering [0, length) with consecutive overlap >= min_overlap.
+
+    One tile at 0 when ``length <= tile``; otherwise the fewest evenly spread tiles, the
+    first at 0 and the last ending at ``length``.
+    """
+    if tile < 1 or not 0 <= min_overlap < tile:
+        raise ValueError(f"need tile >= 1 and 0 <= min_overlap < tile, got tile={tile}, "
+                         f"min_overlap={min_overlap}")
+    if length <= tile:
+        return np.zeros(1, np.int64)
+    n = int(np.ceil((length - min_overlap) / (tile - min_overlap)))
+    while True:
+        starts = np.round(np.linspace(0, length - tile, max(n, 2))).astype(np.int64)
+        if np.all(np.diff(starts) <= tile - min_overlap):
+            return starts
+        n += 1
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class TileLayout:
+    """Where every tile lies. Host-side (NumPy) and static, so tiling compiles once per size.
+
+    Attributes:
+      image_hw: (H, W) of the full image.
+      tile_size: side t of the square tiles.
+      scales: requested scale factors, one per scale level.
+      scaled_hw: ((hs, ws), ...) rounded image size at each scale.
+      tile_scale: [N] index into ``scales`` of each tile.
+      tile_origin: [N, 2] (x0, y0) of each tile's top-left corner in its scaled image.
+    """
+
+    image_hw: tuple[int, int]
+    tile_size: int
+    scales: tuple[float, ...]
+    scaled_hw: tuple[tuple[int, int], ...]
+    tile_scale: np.ndarray
+    tile_origin: np.ndarray
+
+    @property
+    def num_tiles(self) -> int:
+        return int(self.tile_scale.shape[0])
+
+    @property
+    def tile_factors(self) -> np.ndarray:
+        """[N, 2] exact (sx, sy) factors from full-image to scaled-image pixels per tile."""
+        h, w = self.image_hw
+        f = np.array([[ws / w, hs / h] for hs, ws in self.scaled_hw], np.float64)
+        return f[self.tile_scale]
+
+    @property
+    def windows(self) -> np.ndarray:
+        """[N, 4] xyxy full-image pixels each tile sees (may extend past the image)."""
+        f = np.concatenate([self.tile_factors] * 2, axis=1)
+        o = np.concatenate([self.tile_origin, self.tile_origin + self.tile_size], axis=1)
+        return o / f
+
+
+def tile_layout(image_hw: tuple[int, int], tile_size: int = 512, scales=(1.0,),
+                min_overlap: int | None = None) -> TileLayout:
+    """Tiles of ``tile_size`` with overlap >= ``min_overlap`` px at each scale, row-major.
+
+    An object of up to ``min_overlap`` pixels (at that scale) lies wholly inside at least one
+    tile. The default, ``min(128, tile_size // 4)``, is the smallest trained object size for
+    512 tiles; raise it towards 350 to see every trained-size object whole at the cost of
+    more tiles.
+    """
+    if min_overlap is None:
+        min_overlap = min(int(TRAINED_SIZE_RANGE[0]), tile_size // 4)
+    h, w = (int(v) for v in image_hw)
+    if h < 1 or w < 1:
+        raise ValueError(f"image size must be positive, got {image_hw}")
+    scales = tuple(float(s) for s in np.atleast_1d(scales))
+    if not scales or any(s <= 0 for s in scales):
+        raise ValueError(f"scales must be positive, got {scales}")
+    scaled, tile_scale, origin = [], [], []
+    for i, s in enumerate(scales):
+        hs, ws = max(1, round(h * s)), max(1, round(w * s))
+        scaled.append((hs, ws))
+        ys = axis_tile_starts(hs, tile_size, min_overlap)
+        xs = axis_tile_starts(ws, tile_size, min_overlap)
+        for y0 in ys:
+            for x0 in xs:
+                tile_scale.append(i)
+                origin.append((x0, y0))
+    return TileLayout((h, w), int(tile_size), scales, tuple(scaled),
+                      np.asarray(tile_scale, np.int64), np.asarray(origin, np.int64))
+
+
+def geometric_scales(image_hw: tuple[int, int], tile_size: int = 512, num_scales: int = 3,
+                     ratio: float = TRAINED_SIZE_RANGE[1] / TRAINED_SIZE_RANGE[0],
+                     ) -> tuple[float, ...]:
+    """Scales for an unknown depth range: the first fits the whole image in one tile, each
+    next is ``ratio`` times larger (default 350/128), so the trained size bands of
+    consecutive scales touch and together cover object sizes over ``ratio**num_scales``."""
+    if num_scales < 1:
+        raise ValueError(f"num_scales must be >= 1, got {num_scales}")
+    fit = tile_size / max(image_hw)
+    return tuple(float(fit * ratio**k) for k in range(num_scales))
+
+
+def scale_for_object_size(expected_size_px: float,
+                          target_size_px: float = float(np.sqrt(np.prod(TRAINED_SIZE_RANGE))),
+                          ) -> float:
+    """One scale for a known depth range: maps an object of ``expected_size_px`` (its box
+    diagonal or side in the full image) to ``target_size_px`` (default: geometric mean of the
+    trained 128-350 px band)."""
+    if expected_size_px <= 0:
+        raise ValueError(f"expected_size_px must be > 0, got {expected_size_px}")
+    return float(target_size_px / expected_size_px)
+
+
+def extract_tiles(image: Array, layout: TileLayout, pad_value: float = 0.0) -> Array:
+    """[H, W, C] image -> [N, t, t, C] float32 tiles in ``layout`` order.
+
+    uint8 input is scaled to [0, 1]. Each scale is resampled once with antialiased bilinear
+    interpolation (``jax.image.resize``), padded with ``pad_value`` past its bottom/right
+    edge, and cropped at the static tile origins, so the whole function jit-compiles.
+    """
+    image = jnp.asarray(image)
+    if image.ndim != 3 or tuple(image.shape[:2]) != layout.image_hw:
+        raise ValueError(f"image must be [H, W, C] with (H, W) = {layout.image_hw}, got "
+                         f"{image.shape}; build the layout for this image size")
+    uint8 = image.dtype == jnp.uint8
+    image = image.astype(jnp.float32) / (255.0 if uint8 else 1.0)
+    t = layout.tile_size
+    tiles = []
+    for i, (hs, ws) in enumerate(layout.scaled_hw):
+        scaled = image if (hs, ws) == layout.image_hw else jax.image.resize(
+            image, (hs, ws, image.shape[2]), method="linear", antialias=True)
+        sel = layout.tile_origin[layout.tile_scale == i]
+        ph = max(0, int(sel[:, 1].max()) + t - hs)
+        pw = max(0, int(sel[:, 0].max()) + t - ws)
+        scaled = jnp.pad(scaled, ((0, ph), (0, pw), (0, 0)), constant_values=pad_value)
+        tiles += [scaled[y0:y0 + t, x0:x0 + t] for x0, y0 in sel]
+    return jnp.stack(tiles)
+
+
+def tile_boxes_to_image(boxes: Array, layout: TileLayout, clip: bool = True) -> Array:
+    """Tile-normalised cxcywh [N, P, 4] -> full-image xyxy pixels [N, P, 4].
+
+    x_image = (x_tile_px + x0) / sx for every coordinate, with (x0, y0) the tile origin in its
+    scaled image and (sx, sy) the scale's exact factors; optionally clipped to the image.
+    """
+    boxes = jnp.asarray(boxes, jnp.float32)
+    if boxes.ndim != 3 or boxes.shape[0] != layout.num_tiles:
+        raise ValueError(f"boxes must be [N={layout.num_tiles}, P, 4], got {boxes.shape}")
+    px = cxcywh_to_xyxy(boxes) * layout.tile_size
+    origin = jnp.asarray(np.tile(layout.tile_origin, 2), jnp.float32)[:, None]
+    factor = jnp.asarray(np.tile(layout.tile_factors, 2), jnp.float32)[:, None]
+    out = (px + origin) / factor
+    if clip:
+        h, w = layout.image_hw
+        out = jnp.clip(out, 0.0, jnp.asarray([w, h, w, h], jnp.float32))
+    return out
+
+
+def interior_edge_mask(boxes: Array, layout: TileLayout, margin_px: float = 2.0) -> Array:
+    """[N, P] True where a tile-normalised cxcywh box [N, P, 4] touches a tile edge that lies
+    inside the scaled image (within ``margin_px`` tile pixels): such a box may see only part
+    of its object, which another tile or scale sees whole."""
+    boxes = jnp.asarray(boxes, jnp.float32)
+    t = layout.tile_size
+    xyxy = cxcywh_to_xyxy(boxes) * t
+    scaled = np.asarray(layout.scaled_hw, np.int64)[layout.tile_scale]  # [N, 2] (hs, ws)
+    x0, y0 = layout.tile_origin[:, 0], layout.tile_origin[:, 1]
+    inner = np.stack([x0 > 0, y0 > 0, x0 + t < scaled[:, 1], y0 + t < scaled[:, 0]], -1)
+    near = jnp.stack([xyxy[..., 0] <= margin_px, xyxy[..., 1] <= margin_px,
+                      xyxy[..., 2] >= t - margin_px, xyxy[..., 3] >= t - margin_px], -1)
+    return jnp.any(near & jnp.asarray(inner)[:, None, :], -1)
+
+
+def merge_detections(boxes: Array, scores: Array, *, iou_threshold: float = 0.5,
+                     max_outputs: int = 100, pre_nms_topk: int = 2000,
+                     score_threshold: float = -jnp.inf, valid: Array | None = None,
+                     across_objects: bool = True) -> dict[str, Array]:
+    """NMS over all tiles, scales and objects of one image.
+
+    Args:
+      boxes: [O, N, P, 4] full-image xyxy (``tile_boxes_to_image``), for O query objects.
+      scores: [O, N, P] detection scores.
+      valid: [O, N, P] candidates allowed (e.g. not ``interior_edge_mask``).
+      across_objects: suppress overlapping boxes of different objects too (a region holds
+        one object); if False, only boxes of the same object suppress each other.
+      pre_nms_topk: candidates kept by score before the O(K * candidates) NMS.
+
+    Returns ``boxes`` [K, 4], ``scores`` [K], ``object_index``, ``tile_index``,
+    ``patch_index`` [K] int32 and ``valid`` [K] (K = max_outputs; invalid rows are padding).
+    """
+    boxes = jnp.asarray(boxes, jnp.float32)
+    scores = jnp.asarray(scores, jnp.float32)
+    if boxes.ndim != 4 or boxes.shape[:3] != scores.shape:
+        raise ValueError(f"boxes [O, N, P, 4] and scores [O, N, P] disagree: {boxes.shape}, "
+                         f"{scores.shape}")
+    _, n, p = scores.shape
+    flat_boxes = boxes.reshape(-1, 4)
+    flat_scores = scores.reshape(-1)
+    if valid is not None:
+        flat_scores = jnp.where(jnp.asarray(valid, bool).reshape(-1), flat_scores, -jnp.inf)
+    k = min(pre_nms_topk, flat_scores.shape[0])
+    top_scores, top = jax.lax.top_k(flat_scores, k)
+    top_boxes = flat_boxes[top]
+    obj = (top // (n * p)).astype(jnp.int32)
+    nms_boxes = top_boxes
+    if not across_objects:
+        # Batched-NMS trick: shift each object's boxes to a disjoint region of the plane.
+        span = jnp.max(jnp.abs(top_boxes)) * 2.0 + 1.0
+        nms_boxes = top_boxes + (obj.astype(jnp.float32) * span)[:, None]
+    keep, ok = nms(nms_boxes, top_scores, iou_threshold, max_outputs, score_threshold)
+    idx = top[keep]
+    return {
+        "boxes": jnp.where(ok[:, None], top_boxes[keep], 0.0),
+        "scores": jnp.where(ok, top_scores[keep], 0.0),
+        "object_index": jnp.where(ok, obj[keep], -1),
+        "tile_index": jnp.where(ok, (idx // p) % n, -1).astype(jnp.int32),
+        "patch_index": jnp.where(ok, idx % p, -1).astype(jnp.int32),
+        "valid": ok,
+    }
