@@ -1,0 +1,95 @@
+"""Orbax checkpoints of a training run: state (model, optimizer, step) and the grain iterator.
+
+One ``ocp.CheckpointManager`` in ``<workdir>/checkpoints`` saves, at each checkpoint step, a
+composite of
+
+* ``state``: the train state pytree (``step``, ``params``, ``opt_state``), restored straight
+  into its shardings (``StandardRestore`` with abstract arrays that carry them), and
+* ``data``: the grain ``DatasetIterator`` state (``grain.checkpoint.CheckpointSave``: one JSON
+  file per process), so a resumed run reads the same next batch.
+
+Preservation: the latest ``max_to_keep`` checkpoints, plus the best one by ``best_metric``
+among those saved with evaluation metrics (``AnyPreservationPolicy(LatestN, BestN)``).
+"""
+
+from __future__ import annotations
+
+import pathlib
+from collections.abc import Mapping
+from typing import Any
+
+import grain
+import jax
+import orbax.checkpoint as ocp
+from orbax.checkpoint import checkpoint_managers as policies
+
+
+class Checkpointer:
+    """Save / restore of (train state, data iterator) with the module's preservation policy."""
+
+    def __init__(self, workdir, *, max_to_keep: int = 3, best_metric: str | None = "eval/ap50",
+                 best_mode: str = "max", async_save: bool = True):
+        if max_to_keep < 1:
+            raise ValueError(f"checkpoint.max_to_keep must be >= 1, got {max_to_keep}")
+        if best_mode not in ("max", "min"):
+            raise ValueError(f"checkpoint.best_mode must be 'max' or 'min', got {best_mode!r}")
+        self.directory = pathlib.Path(workdir).resolve() / "checkpoints"
+        self.best_metric = best_metric or None
+        keep = [policies.LatestN(n=max_to_keep)]
+        if self.best_metric:
+            keep.append(policies.BestN(
+                get_metric_fn=lambda m: float(m[self.best_metric]),
+                reverse=best_mode == "min", n=1, keep_checkpoints_without_metrics=False))
+        options = ocp.CheckpointManagerOptions(
+            preservation_policy=policies.AnyPreservationPolicy(keep),
+            enable_async_checkpointing=async_save,
+            create=True,
+        )
+        self.manager = ocp.CheckpointManager(self.directory, options=options)
+
+    def latest_step(self) -> int | None:
+        return self.manager.latest_step()
+
+    def all_steps(self) -> list[int]:
+        return list(self.manager.all_steps())
+
+    def save(self, step: int, state: Any, data_iterator: grain.DatasetIterator | None,
+             metrics: Mapping[str, float] | None = None) -> None:
+        """Save at ``step`` (asynchronously when enabled). ``metrics`` must hold
+        ``best_metric`` for the checkpoint to compete for "best"."""
+        items = {"state": ocp.args.StandardSave(state)}
+        if data_iterator is not None:
+            items["data"] = grain.checkpoint.CheckpointSave(data_iterator)
+        if metrics is not None and self.best_metric and self.best_metric not in metrics:
+            metrics = None
+        self.manager.save(step, args=ocp.args.Composite(**items),
+                          metrics=None if metrics is None else {k: float(v) for k, v in
+                                                                metrics.items()},
+                          force=True)
+
+    def restore(self, step: int, abstract_state: Any,
+                data_iterator: grain.DatasetIterator | None) -> Any:
+        """Restore ``step`` into ``abstract_state`` (ShapeDtypeStructs with shardings); the
+        data iterator, when given, is set to its saved position in place."""
+        items = {"state": ocp.args.StandardRestore(abstract_state)}
+        if data_iterator is not None:
+            if not (self.directory / str(step) / "data").exists():
+                raise FileNotFoundError(
+                    f"checkpoint {self.directory / str(step)} has no data iterator state; it was "
+                    "not written by this trainer (start from a fresh --workdir)")
+            items["data"] = grain.checkpoint.CheckpointRestore(data_iterator)
+        restored = self.manager.restore(step, args=ocp.args.Composite(**items))
+        return restored["state"]
+
+    def wait(self) -> None:
+        self.manager.wait_until_finished()
+
+    def close(self) -> None:
+        self.manager.wait_until_finished()
+        self.manager.close()
+
+
+def abstract_with_shardings(tree: Any, shardings: Any) -> Any:
+    """ShapeDtypeStructs of ``tree`` carrying ``shardings`` (restore targets)."""
+    return jax.tree.map(
+        lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s), tree, shardings)
