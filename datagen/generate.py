@@ -1,0 +1,406 @@
+"""Generate synthetic BOP scenes: ``python -m datagen.generate``.
+
+::
+
+    python -m datagen.generate --meshes DIR [DIR ...] [procedural:N] --out DIR \\
+        --num-scenes N --images-per-scene M --views V --resolution W H --spp S \\
+        --seed S --shard I --num-shards N [--layout drop|float|pack|mixed] \\
+        [--split train|val --val-fraction F]
+
+Output (one BOP dataset per ``--out``; see ``datagen/scene.py`` for what a scene holds)::
+
+    OUT/models/obj_XXXXXX.ply (+ textures), models_info.json   the meshes the scenes use
+    OUT/{split}_pbr/{scene_id:06d}/                              BOP scenes (+ datagen_info.json)
+    OUT/{split}_pbr/manifest.json                                generator version, config, seed,
+                                                                 shard, counts, skipped meshes
+
+**Sharding.** ``--num-scenes`` is the total over all shards; shard ``I`` of ``N`` makes the
+contiguous block of scene ids ``[I * S // N, (I + 1) * S // N)``. Scene ``s`` is drawn from
+``np.random.SeedSequence([seed, split, s])``, so a scene does not depend on how the work is
+split, and the mesh pool (procedural parts included) and its ``obj_id``s depend only on the seed
+and ``--meshes``: shards of one dataset can be merged. Give every shard its own ``--out``
+(``OUT/shard-$I``): a folder that holds another shard's manifest is refused.
+
+**Resume.** A scene is written to ``{id}.tmp/`` and renamed to ``{id}/`` when complete; a rerun
+with the same arguments skips complete scenes and deletes and redoes a partial one. Every file
+is written atomically (temporary file and rename), and the output is byte-identical to an
+uninterrupted run (the manifest has no timestamps).
+
+**Held-out meshes.** ``--val-fraction F`` assigns each mesh to ``val`` when a hash of its pool
+name falls below F (stable when meshes are added), and ``--split`` picks which meshes the run
+may use: run once with ``--split train`` and once with ``--split val`` (same seed and meshes).
+With ``--val-fraction 0`` every mesh is allowed, and held-out sets come from separate
+``--meshes`` instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import pathlib
+import sys
+import warnings
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from datagen import meshes as M
+from datagen import procedural as P
+from datagen import scene as S
+from threept_jax.data import bop
+
+GENERATOR = "threept_jax.datagen"
+GENERATOR_VERSION = "1.0"
+SPLITS = ("train", "val")
+# Stream tags of the seed sequences (arbitrary distinct constants).
+_PROCEDURAL_STREAM = 0x5052_4F43
+_SPLIT_STREAM = {"train": 0x5452_4149, "val": 0x5641_4C20}
+INFO_FILE = "datagen_info.json"
+
+
+# --------------------------------------------------------------------------------------------
+# Mesh pool and split.
+
+
+def parse_mesh_args(entries: Sequence[str]) -> tuple[list[str], int]:
+    """(folders, number of procedural parts) from ``--meshes`` entries (``procedural:N``)."""
+    folders, n_proc = [], 0
+    for e in entries:
+        if e.startswith("procedural:"):
+            try:
+                n = int(e.split(":", 1)[1])
+            except ValueError:
+                raise ValueError(
+                    f"--meshes entry {e!r}: write procedural:N with an integer N, e.g. "
+                    "procedural:200"
+                ) from None
+            if n < 1:
+                raise ValueError(f"--meshes entry {e!r}: N must be >= 1")
+            n_proc += n
+        else:
+            if not pathlib.Path(e).is_dir():
+                raise ValueError(
+                    f"--meshes entry {e!r} is neither a folder nor procedural:N; pass BOP "
+                    "models folders, trees of mesh files, or procedural:N"
+                )
+            folders.append(e)
+    return folders, n_proc
+
+
+def build_pool(
+    entries: Sequence[str], seed: int, units: str = "mm", procedural_max_faces: int = 5000
+) -> M.MeshPool:
+    """The mesh pool of a run: folders in order, then the procedural parts of ``seed``.
+
+    Depends only on the mesh arguments and the seed (never on the shard), so obj_ids agree
+    across shards and splits.
+    """
+    folders, n_proc = parse_mesh_args(entries)
+    parts: list[P.Part] = []
+    if n_proc:
+        rng = np.random.default_rng(np.random.SeedSequence([seed, _PROCEDURAL_STREAM]))
+        parts = P.generate_parts(rng, n_proc, max_faces=procedural_max_faces)
+    return M.build_pool([M.MeshFolder(f, units=units) for f in folders], parts)
+
+
+def mesh_split(name: str, val_fraction: float) -> str:
+    """'val' or 'train' for a pool mesh name: a hash of the name against ``val_fraction``."""
+    h = int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "big") / 2.0**64
+    return "val" if h < val_fraction else "train"
+
+
+def split_candidates(pool: M.MeshPool, split: str, val_fraction: float) -> list[int]:
+    """Pool indices the split may use (all of them when ``val_fraction`` is 0)."""
+    if val_fraction <= 0:
+        return list(range(len(pool)))
+    return [i for i, r in enumerate(pool.records) if mesh_split(r.name, val_fraction) == split]
+
+
+def pool_fingerprint(pool: M.MeshPool) -> str:
+    h = hashlib.sha256()
+    for r in pool.records:
+        h.update(f"{r.obj_id} {r.name}\n".encode())
+    return h.hexdigest()[:16]
+
+
+def shard_scene_ids(num_scenes: int, shard: int, num_shards: int) -> range:
+    """Scene ids of one shard: a contiguous block, sizes differing by at most one."""
+    return range(shard * num_scenes // num_shards, (shard + 1) * num_scenes // num_shards)
+
+
+def scene_rng(seed: int, split: str, scene_id: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([seed, _SPLIT_STREAM[split], scene_id]))
+
+
+# --------------------------------------------------------------------------------------------
+# Models and manifest.
+
+
+def update_models_info(models_dir: pathlib.Path, pool: M.MeshPool) -> int:
+    """Add ``models_info.json`` entries for every ``obj_*.ply`` in ``models_dir`` lacking one.
+
+    Entries are computed from the written PLY (exact diameter and box, as the BOP toolkit's
+    ``calc_model_info.py``) with the pool's symmetries, so they depend only on the files.
+    Returns the number of entries.
+    """
+    path = models_dir / "models_info.json"
+    existing = bop.load_models_info(path) if path.is_file() else {}
+    by_id = {r.obj_id: r for r in pool.records}
+    changed = False
+    for ply in sorted(models_dir.glob("obj_*.ply")):
+        oid = int(ply.stem.split("_")[1])
+        if oid in existing:
+            continue
+        rec = by_id.get(oid)
+        sym = bop.Symmetries()
+        if rec is not None:
+            sym = bop.Symmetries(
+                np.asarray(rec.symmetries_discrete, np.float64).reshape(-1, 4, 4),
+                [bop.ContinuousSymmetry(s["axis"], s["offset"])
+                 for s in rec.symmetries_continuous],
+            )
+        from threept_jax.data.ply import load_ply_vertices
+
+        existing[oid] = bop.compute_model_info(load_ply_vertices(ply), sym, oid, ply)
+        changed = True
+    if changed or not path.is_file():
+        bop.write_models_info(path, dict(sorted(existing.items())))
+    return len(existing)
+
+
+def _manifest_identity(m: dict[str, Any]) -> dict[str, Any]:
+    keys = ("generator", "version", "seed", "shard", "num_shards", "split", "config", "pool")
+    return {k: m.get(k) for k in keys}
+
+
+def _write_json(path: pathlib.Path, content: Any) -> None:
+    data = (json.dumps(content, indent=1, sort_keys=True) + "\n").encode()
+    bop._atomic_write_bytes(path, data)
+
+
+def check_output(out: pathlib.Path, split_dir: pathlib.Path, manifest: dict[str, Any]) -> None:
+    """Refuse an output folder that holds another configuration or another shard."""
+    mpath = split_dir / "manifest.json"
+    if mpath.is_file():
+        old = json.loads(mpath.read_text())
+        if old.get("shard") != manifest["shard"] or old.get("num_shards") != manifest[
+            "num_shards"
+        ]:
+            raise SystemExit(
+                f"{out} already holds shard {old.get('shard')} of {old.get('num_shards')}; "
+                f"every shard needs its own --out (e.g. --out {out.parent}/shard-$I)"
+            )
+        if _manifest_identity(old) != _manifest_identity(manifest):
+            diff = [k for k, v in _manifest_identity(manifest).items() if old.get(k) != v]
+            raise SystemExit(
+                f"{mpath} was written with different arguments ({', '.join(diff)} differ); "
+                "rerun with the same arguments to resume, or choose a new --out"
+            )
+    for other in sorted(out.glob("*_pbr/manifest.json")):
+        if other == mpath:
+            continue
+        o = json.loads(other.read_text())
+        same_pool = o.get("pool", {}).get("fingerprint") == manifest["pool"]["fingerprint"]
+        if not same_pool or o.get("seed") != manifest["seed"]:
+            raise SystemExit(
+                f"{other} was generated from another mesh pool or seed; the splits of one "
+                "--out share models/ and must use the same --meshes and --seed"
+            )
+
+
+# --------------------------------------------------------------------------------------------
+# The run.
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """Generate this shard's scenes (resuming); returns the final manifest."""
+    from tqdm import tqdm
+
+    try:  # configuration errors: one clear line, no traceback
+        cfg = S.SceneConfig(
+            resolution=(args.resolution[0], args.resolution[1]),
+            spp=args.spp,
+            views=args.views,
+            images_per_scene=args.images_per_scene,
+            layout=args.layout,
+            instances=args.instances,
+            distinct=tuple(args.distinct),
+            distractors=tuple(args.distractors),
+            image_format=args.image_format,
+            max_depth=args.max_depth,
+            closeup_probability=args.closeup_probability,
+        )
+        pool = build_pool(args.meshes, args.seed, args.mesh_units, args.procedural_max_faces)
+    except ValueError as e:
+        raise SystemExit(f"error: {e}") from e
+    if args.num_scenes < 1 or args.num_shards < 1:
+        raise SystemExit("--num-scenes and --num-shards must be >= 1")
+    if not 0 <= args.shard < args.num_shards:
+        raise SystemExit(f"--shard must lie in [0, --num-shards), got {args.shard} of "
+                         f"{args.num_shards}")
+    if not 0.0 <= args.val_fraction < 1.0:
+        raise SystemExit(f"--val-fraction must lie in [0, 1), got {args.val_fraction}")
+    if args.threads > 0:
+        import drjit as dr
+
+        from threept_jax.render.mitsuba_backend import load_mitsuba
+
+        load_mitsuba()
+        dr.set_thread_count(args.threads)
+    out = pathlib.Path(args.out)
+    models_dir = out / "models"
+    split_dir = out / f"{args.split}_pbr"
+    candidates = split_candidates(pool, args.split, args.val_fraction)
+    if not candidates:
+        raise SystemExit(
+            f"no mesh of the pool ({len(pool)} meshes) falls in split {args.split!r} at "
+            f"--val-fraction {args.val_fraction}; raise it or add meshes"
+        )
+    scene_ids = shard_scene_ids(args.num_scenes, args.shard, args.num_shards)
+    config = {k: v for k, v in dataclasses.asdict(cfg).items()}
+    config.update(meshes=list(args.meshes), mesh_units=args.mesh_units,
+                  num_scenes=args.num_scenes, val_fraction=args.val_fraction,
+                  procedural_max_faces=args.procedural_max_faces)
+    config = json.loads(json.dumps(config))  # tuples -> lists, as read back
+    manifest: dict[str, Any] = {
+        "generator": GENERATOR,
+        "version": GENERATOR_VERSION,
+        "seed": args.seed,
+        "shard": args.shard,
+        "num_shards": args.num_shards,
+        "split": args.split,
+        "config": config,
+        "pool": {"num_meshes": len(pool), "fingerprint": pool_fingerprint(pool),
+                 "split_meshes": len(candidates)},
+        "scene_ids": [scene_ids.start, scene_ids.stop],
+        "status": "running",
+    }
+    split_dir.mkdir(parents=True, exist_ok=True)
+    check_output(out, split_dir, manifest)
+    _write_json(split_dir / "manifest.json", manifest)
+    models_dir.mkdir(parents=True, exist_ok=True)
+    update_models_info(models_dir, pool)
+
+    assets = S.AssetCache(pool, models_dir)
+    done = [s for s in scene_ids if (split_dir / f"{s:06d}" / INFO_FILE).is_file()]
+    bar = tqdm(
+        total=len(scene_ids) * cfg.images,
+        initial=len(done) * cfg.images,
+        unit="img",
+        desc=f"shard {args.shard}/{args.num_shards} {args.split}",
+        dynamic_ncols=True,
+        disable=args.quiet,
+    )
+    totals = S.Timings()
+    for s in scene_ids:
+        final = split_dir / f"{s:06d}"
+        if (final / INFO_FILE).is_file():
+            continue
+        tmp = split_dir / f"{s:06d}.tmp"
+        if tmp.exists():
+            S.remove_tree(tmp)  # a partial scene of a killed run: redo it
+        if final.exists():
+            S.remove_tree(final)
+        res = S.generate_scene(tmp, s, scene_rng(args.seed, args.split, s), assets, candidates,
+                               cfg, on_image=lambda: bar.update(1))
+        _write_json(tmp / INFO_FILE, res.info)
+        os.replace(tmp, final)
+        update_models_info(models_dir, pool)
+        for f in dataclasses.fields(totals):
+            setattr(totals, f.name, getattr(totals, f.name) + getattr(res.timings, f.name))
+    bar.close()
+
+    # The manifest summarises the completed scenes from their info files, so it is the same
+    # whether the run was resumed or not.
+    objects: dict[str, str] = {}
+    skipped: dict[str, str] = {}
+    layouts: dict[str, int] = {}
+    n_inst = 0
+    for s in scene_ids:
+        info = json.loads((split_dir / f"{s:06d}" / INFO_FILE).read_text())
+        objects.update(info["objects"])
+        skipped.update(info["skipped_meshes"])
+        layouts[info["layout"]] = layouts.get(info["layout"], 0) + 1
+        n_inst += info["num_targets"]
+    manifest.update(
+        status="complete",
+        num_scenes=len(scene_ids),
+        num_images=len(scene_ids) * cfg.images,
+        instances_per_scene=n_inst / max(len(scene_ids), 1),
+        layouts=dict(sorted(layouts.items())),
+        objects=dict(sorted(objects.items(), key=lambda kv: int(kv[0]))),
+        skipped_meshes=len(skipped),
+        skipped_mesh_reasons=dict(sorted(skipped.items())),
+    )
+    _write_json(split_dir / "manifest.json", manifest)
+    if not args.quiet:
+        t = totals
+        spent = t.physics + t.compose + t.render + t.annotate + t.write
+        if spent > 0:
+            print(
+                f"{len(scene_ids) - len(done)} scenes generated ({len(done)} already done): "
+                f"physics {t.physics:.1f} s, composition {t.compose:.1f} s, "
+                f"rendering {t.render:.1f} s, masks {t.annotate:.1f} s, "
+                f"writing {t.write:.1f} s; "
+                f"{len(skipped)} meshes skipped",
+                file=sys.stderr,
+            )
+    return manifest
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m datagen.generate",
+        description="Render synthetic BOP scenes with Mitsuba (see the module docstring).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("--meshes", nargs="+", required=True,
+                   help="BOP models folders, trees of mesh files, and/or procedural:N")
+    p.add_argument("--out", required=True, help="dataset folder (one per shard)")
+    p.add_argument("--num-scenes", type=int, required=True, help="scenes over all shards")
+    p.add_argument("--images-per-scene", type=int, default=1, help="captures M per scene")
+    p.add_argument("--views", type=int, default=1, help="cameras V per capture (ring rig if > 1)")
+    p.add_argument("--resolution", type=int, nargs=2, default=(640, 480), metavar=("W", "H"))
+    p.add_argument("--spp", type=int, default=64, help="path-tracing samples per pixel")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--shard", type=int, default=0)
+    p.add_argument("--num-shards", type=int, default=1)
+    p.add_argument("--layout", choices=S.LAYOUTS, default="mixed")
+    p.add_argument("--split", choices=SPLITS, default="train")
+    p.add_argument("--val-fraction", type=float, default=0.0,
+                   help="share of meshes held out for --split val (0: no split)")
+    p.add_argument("--instances", type=int, default=30,
+                   help="mean annotated instances per scene (the paper averages ~110)")
+    p.add_argument("--distinct", type=int, nargs=2, default=(1, 20), metavar=("MIN", "MAX"),
+                   help="distinct meshes per scene")
+    p.add_argument("--distractors", type=int, nargs=2, default=(0, 5), metavar=("MIN", "MAX"))
+    p.add_argument("--closeup-probability", type=float, default=0.3,
+                   help="share of single views aimed at part of the scene (truncated objects)")
+    p.add_argument("--image-format", choices=("jpg", "png"), default="jpg")
+    p.add_argument("--max-depth", type=int, default=6, help="path length of the path tracer")
+    p.add_argument("--mesh-units", choices=sorted(M.UNITS_TO_MM), default="mm",
+                   help="units of the mesh folders (BOP models are in mm)")
+    p.add_argument("--procedural-max-faces", type=int, default=P.DEFAULT_MAX_FACES)
+    p.add_argument("--threads", type=int, default=0,
+                   help="Mitsuba (Dr.Jit) worker threads; 0: all cores. The output does not "
+                   "depend on it")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    # trimesh logs a traceback for every PLY whose texture file is missing (most YCB-V models
+    # in ../shared); such meshes render untextured, which is not an error here.
+    logging.getLogger("trimesh").setLevel(logging.CRITICAL)
+    return run(build_parser().parse_args(argv))
+
+
+if __name__ == "__main__":
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")
+        main()

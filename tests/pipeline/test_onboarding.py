@@ -1,0 +1,123 @@
+"""Onboarding renders: the bank camera derived by hand, silhouettes against cv2.projectPoints,
+visible faces against the rotated face normals, both backends, chunking.
+
+References: the camera is rebuilt here from the definition in ``threept_jax.data.banks``
+(distance 4 r, focal length 0.9 (side / 2) / tan(asin(1 / 4)), principal point at the image
+centre) rather than taken from the code under test; silhouettes come from OpenCV.
+"""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from threept_jax.geometry.grids import prior_view_rotations, super_fibonacci_rotations
+from threept_jax.pipeline.onboarding import object_camera, render_object_views
+from threept_jax.render import Mesh
+
+HW = (48, 48)
+FACE_COLORS = np.array(
+    [[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [0, 1, 1], [1, 0, 1]], np.float32
+)
+
+
+def _box(extents=(40.0, 60.0, 24.0), offset=(7.0, -3.0, 5.0)):
+    """An off-centre box whose 6 faces have distinct vertex colours (unwelded corners)."""
+    b = trimesh.creation.box(extents=extents)
+    b.apply_translation(offset)
+    normals = b.face_normals
+    axis = np.abs(normals).argmax(1)
+    face_kind = axis * 2 + (normals[np.arange(len(normals)), axis] > 0)
+    v = b.vertices[b.faces].reshape(-1, 3)
+    colors = np.repeat(FACE_COLORS[face_kind], 3, 0)
+    n = np.repeat(normals, 3, 0)
+    mesh = Mesh(v, np.arange(len(v)).reshape(-1, 3), n, colors=colors, name="box")
+    return mesh, b, face_kind
+
+
+def _hand_camera(vertices, hw):
+    lo, hi = vertices.min(0), vertices.max(0)
+    c = (lo + hi) / 2
+    r = np.linalg.norm(vertices - c, axis=1).max()
+    d = 4.0 * r
+    f = 0.9 * (min(hw) / 2) / math.tan(math.asin(1 / 4))
+    K = np.array([[f, 0, (hw[1] - 1) / 2], [0, f, (hw[0] - 1) / 2], [0, 0, 1.0]])
+    return K, c, r, d
+
+
+def test_camera_matches_the_documented_definition():
+    mesh, b, _ = _box()
+    K, c, r, d = _hand_camera(np.asarray(b.vertices), HW)
+    K2, c2, d2 = object_camera(mesh, HW)
+    np.testing.assert_allclose(K2, K, rtol=1e-12)
+    np.testing.assert_allclose(c2, c, atol=1e-5)
+    assert d2 == pytest.approx(d, rel=1e-6)
+
+
+@pytest.mark.parametrize("backend", ["jax", "mitsuba"])
+def test_silhouettes_match_projected_hull(backend):
+    """The box is convex: its silhouette is the convex hull of cv2.projectPoints of its corners,
+    and every projected vertex stays inside the sphere's image (90 % of the side)."""
+    mesh, b, _ = _box()
+    K, c, r, d = _hand_camera(np.asarray(b.vertices), HW)
+    R_all = np.concatenate([prior_view_rotations(), super_fibonacci_rotations(4)])
+    images = render_object_views(mesh, R_all, HW, backend=backend, chunk=8, ambient=1.0)
+    assert images.shape == (16, *HW, 3) and images.dtype == np.uint8
+    for R, im in zip(R_all.astype(np.float64), images):
+        t = np.array([0.0, 0.0, d]) - R @ c
+        uv, _ = cv2.projectPoints(np.asarray(b.vertices), cv2.Rodrigues(R)[0], t, K, None)
+        uv = uv.reshape(-1, 2)
+        hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
+        # Rasterise the hull at pixel centres: pixel (i, j) is inside when its centre is.
+        ys, xs = np.mgrid[0 : HW[0], 0 : HW[1]]
+        inside = np.array(
+            [cv2.pointPolygonTest(hull, (float(x), float(y)), False) >= 0
+             for x, y in zip(xs.ravel(), ys.ravel())]
+        ).reshape(HW)
+        mask = im.any(-1)
+        iou = (mask & inside).sum() / (mask | inside).sum()
+        assert iou > 0.97, iou
+        centre = np.array([(HW[1] - 1) / 2, (HW[0] - 1) / 2])
+        assert np.linalg.norm(uv - centre, axis=1).max() <= 0.9 * HW[0] / 2 + 1e-3
+
+
+def test_visible_face_colours_follow_the_rotation():
+    """The ray through the image centre hits the face whose rotated outward normal points most
+    toward the camera (most negative z); with ambient 1 its pixels show that face's colour."""
+    mesh, b, face_kind = _box(extents=(40.0, 40.0, 40.0), offset=(0.0, 0.0, 0.0))
+    R_all = super_fibonacci_rotations(40).astype(np.float64)
+    images = render_object_views(mesh, R_all, HW, chunk=8, ambient=1.0)
+    axes = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1.0]])
+    checked = 0
+    for R, im in zip(R_all, images):
+        nz = (axes @ R.T)[:, 2]
+        order = np.argsort(nz)
+        if nz[order[1]] - nz[order[0]] < 0.2:
+            continue  # an edge near the centre: ambiguous
+        want = np.round(FACE_COLORS[order[0]] * 255)
+        block = im[HW[0] // 2 - 1 : HW[0] // 2 + 1, HW[1] // 2 - 1 : HW[1] // 2 + 1]
+        np.testing.assert_array_equal(block.reshape(-1, 3), np.tile(want, (4, 1)))
+        checked += 1
+    assert checked >= 10
+
+
+def test_chunks_do_not_change_the_renders():
+    mesh, _, _ = _box()
+    R = super_fibonacci_rotations(10)
+    whole = render_object_views(mesh, R, HW, chunk=8)
+    tail = render_object_views(mesh, R[8:], HW, chunk=8)
+    np.testing.assert_array_equal(whole[8:], tail)
+    mitsuba = render_object_views(mesh, R, HW, backend="mitsuba", chunk=8)
+    fg = whole.any(-1) | mitsuba.any(-1)
+    assert (whole.any(-1) == mitsuba.any(-1)).mean() > 0.995
+    assert np.abs(whole.astype(int) - mitsuba)[fg].mean() < 3.0
+
+
+def test_bad_rotations_raise():
+    mesh, _, _ = _box()
+    with pytest.raises(ValueError, match=r"\[N, 3, 3\]"):
+        render_object_views(mesh, np.eye(3), HW)
+    with pytest.raises(ValueError, match="chunk"):
+        render_object_views(mesh, np.eye(3)[None], HW, chunk=0)
