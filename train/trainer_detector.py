@@ -240,6 +240,18 @@ def build_step(model_cfg: DetectorConfig, loss_cfg: DetectorLossConfig, optim_ke
 # --------------------------------------------------------------------------- checks
 
 
+def write_run_files(workdir: pathlib.Path, config: ml_collections.ConfigDict,
+                    model_cfg: DetectorConfig) -> None:
+    """``config.json`` (the whole run config) and ``detector.json`` (the model config that
+    inference rebuilds the detector from: ``infer.checkpoint.load_detector``)."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    for name, text in (("config.json", config.to_json_best_effort(indent=2, sort_keys=True)),
+                       ("detector.json", json.dumps(model_cfg.to_dict(), indent=2, sort_keys=True))):
+        tmp = workdir / (name + ".tmp")
+        tmp.write_text(text)
+        tmp.replace(workdir / name)
+
+
 def check_finite(step: int, metrics: Mapping[str, float]) -> None:
     """Stop with a clear message when the loss or the gradient norm is not finite."""
     if math.isfinite(metrics.get("loss", 0.0)) and math.isfinite(metrics.get("grad_norm", 0.0)):
@@ -312,6 +324,8 @@ class DetectorTrainer:
 
         self.model_cfg = model_config(config)
         self.loss_cfg = loss_config(config)
+        if jax.process_index() == 0:
+            write_run_files(self.workdir, config, self.model_cfg)
         self.compiled = build_step(
             self.model_cfg, self.loss_cfg, json.dumps(config.optim.to_dict(), sort_keys=True),
             int(config.total_steps), int(config.seed), self.mesh, int(config.mesh.fsdp_min_size))

@@ -17,6 +17,7 @@ from flax import nnx
 from threept_jax.data import banks
 from threept_jax.models.detector import Detector
 from threept_jax.models.vit import count_params
+from infer.checkpoint import load_detector
 from train import eval_detector, sharding
 from train import trainer_detector as td
 from train.configs import detector as detector_configs
@@ -173,6 +174,11 @@ def test_kill_and_resume_in_process(toy, tmp_path):
     assert sorted(resumed_log) == [3]
     _assert_same_batch(resumed_log[3][0], full[3][0])
     assert resumed_log[3][1] == pytest.approx(full[3][1], rel=1e-6)
+    # Inference loads exactly the trained parameters (and the model config) from the workdir.
+    model, model_cfg, step = load_detector(tmp_path / "cut", step="latest")
+    assert step == 3 and model_cfg == td.model_config(cfg)
+    loaded = nnx.to_pure_dict(nnx.state(model, nnx.Param))
+    jax.tree.map(np.testing.assert_array_equal, loaded, _params_np(again))
 
 
 def test_killed_subprocess_resumes_to_the_same_batch(toy, tmp_path):

@@ -246,6 +246,12 @@ class DetectorConfig:
         """P, the number of object hypotheses per tile."""
         return self.grid_size**2
 
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready fields (dtypes by name); ``DetectorConfig(**d)`` rebuilds the config."""
+        d = dataclasses.asdict(self)
+        d["dtype"], d["param_dtype"] = np.dtype(self.dtype).name, np.dtype(self.param_dtype).name
+        return d
+
     @property
     def num_prior_tokens(self) -> int:
         """Np = num_prior_views * tokens_per_view."""
