@@ -139,7 +139,7 @@ def main():
 
         jtot = all_templates(jax_batch)
         mtot = all_templates(mitsuba_batch)
-        rows.append((f"5140 templates 128x128 (s)", jtot, mtot, None, None))
+        rows.append(("5140 templates 128x128 (s)", jtot, mtot, None, None))
 
     print(f"{'config':28s} {'jax r/s':>10s} {'mitsuba r/s':>12s} {'jax/mitsuba':>12s}"
           f" {'jax cold s':>11s} {'mitsuba cold s':>15s}")

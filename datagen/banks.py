@@ -3,7 +3,7 @@
 For every object of a records folder's ``objects.json`` (``threept_jax.data.banks``), render
 the 12 prior views (``grids.prior_view_rotations()``) and T templates
 (``grids.super_fibonacci_rotations(T)``) with ``threept_jax.pipeline.onboarding
-.render_object_views`` (the bank camera of ``threept_jax.data.banks``; JAX rasterizer, shaded
+.render_bank`` (the bank camera of ``threept_jax.data.banks``; JAX rasterizer, shaded
 ``rgb``, textures and vertex colours used) and store them with their rotations, the model's
 diameter, bounding sphere and symmetries as ``banks/obj_XXXXXX.npz``::
 
@@ -20,72 +20,18 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
-import warnings
 from collections.abc import Sequence
 
 import numpy as np
 
 from threept_jax.data import banks as B
 from threept_jax.data.bop import ContinuousSymmetry, Symmetries
-from threept_jax.geometry.grids import prior_view_rotations, super_fibonacci_rotations
-from threept_jax.pipeline.onboarding import render_object_views
-from threept_jax.render import Renderer, load_mesh, prepare_mesh
+from threept_jax.pipeline.onboarding import render_bank
 
-DEFAULT_SIZE = 96  # datagen.pack repeats these defaults (BANK_SIZE, BANK_TEMPLATES)
-DEFAULT_TEMPLATES = 5140
 
 
 class TableError(ValueError):
     """The object table cannot be used for rendering banks (the message names the fix)."""
-
-
-def render_bank(
-    mesh_path: pathlib.Path,
-    obj_id: int,
-    diameter: float,
-    symmetries: Symmetries,
-    size: int = DEFAULT_SIZE,
-    num_templates: int = DEFAULT_TEMPLATES,
-    *,
-    max_faces: int | None = 20000,
-    chunk: int = 64,
-    backend: str = "jax",
-    on_views=None,
-) -> B.RenderBank:
-    """The :class:`~threept_jax.data.banks.RenderBank` of one model file (renders size x size)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # duplicated BOP faces, open meshes: noise here
-        mesh = load_mesh(mesh_path, models_info=None)
-    centre, radius = B.bounding_sphere(np.asarray(mesh.vertices, np.float64))
-    work = mesh if max_faces is None or mesh.num_faces <= max_faces else prepare_mesh(
-        mesh, max_faces=max_faces)
-    renderer = Renderer(work, backend)
-    prior_R = prior_view_rotations()
-    tmpl_R = super_fibonacci_rotations(num_templates)
-    # Priors and templates in one sequence of equal chunks: one compiled renderer per mesh
-    # bucket, progress reported every few chunks.
-    all_R = np.concatenate([prior_R, tmpl_R])
-    chunk = max(1, min(chunk, len(all_R)))
-    parts = []
-    step = 8 * chunk
-    for start in range(0, len(all_R), step):
-        R = all_R[start : start + step]
-        parts.append(render_object_views(renderer, R, (size, size), sphere=(centre, radius),
-                                         chunk=chunk))
-        if on_views is not None:
-            on_views(len(R))
-    images = np.concatenate(parts)
-    return B.RenderBank(
-        obj_id=int(obj_id),
-        prior_rgb=images[: len(prior_R)],
-        prior_rotations=prior_R,
-        template_rgb=images[len(prior_R) :],
-        template_rotations=tmpl_R,
-        symmetries=B.bank_symmetries(symmetries),
-        diameter=float(diameter),
-        center=centre.astype(np.float32),
-        radius=radius,
-    )
 
 
 def _symmetries(row: dict) -> Symmetries:
@@ -109,8 +55,8 @@ def bank_is_current(path: pathlib.Path, size: int, num_templates: int) -> bool:
 def build_banks(
     records_dir: pathlib.Path,
     obj_ids: Sequence[int] | None = None,
-    size: int = DEFAULT_SIZE,
-    num_templates: int = DEFAULT_TEMPLATES,
+    size: int = B.BANK_SIZE,
+    num_templates: int = B.BANK_TEMPLATES,
     *,
     force: bool = False,
     max_faces: int | None = 20000,
@@ -162,8 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("--records", required=True, help="folder holding objects.json")
-    p.add_argument("--size", type=int, default=DEFAULT_SIZE, help="render side, pixels")
-    p.add_argument("--num-templates", type=int, default=DEFAULT_TEMPLATES)
+    p.add_argument("--size", type=int, default=B.BANK_SIZE, help="render side, pixels")
+    p.add_argument("--num-templates", type=int, default=B.BANK_TEMPLATES)
     p.add_argument("--obj-ids", type=int, nargs="*", default=None)
     p.add_argument("--max-faces", type=int, default=20000,
                    help="decimate larger meshes for the rasterizer")

@@ -52,12 +52,10 @@ import numpy as np
 # module, and need neither JAX nor Mitsuba (datagen.scene and datagen.banks are imported where
 # used).
 from threept_jax.data import bop, records
+from threept_jax.data.banks import BANK_SIZE, BANK_TEMPLATES
 
 SHARD_PATTERN = "shard-{:05d}-of-{:05d}.array_record"
 TABLE = "objects.json"
-# Bank defaults of datagen.banks (kept here so that workers need not import it).
-BANK_SIZE = 96
-BANK_TEMPLATES = 5140
 
 
 class PackError(ValueError):

@@ -88,7 +88,6 @@ def test_refinement_reaches_float64_least_squares_optimum():
 
 
 def test_invalid_views_are_ignored():
-    rng = np.random.default_rng(2)
     V = 4
     T = _ring(V)
     K = np.stack([K640] * V)

@@ -73,6 +73,10 @@ from threept_jax.data.bop import ContinuousSymmetry, Symmetries
 from threept_jax.eval.symmetry import symmetry_transforms
 
 BANK_FORMAT_VERSION = 1
+#: Default render side (pixels) and template count of the banks datagen writes and inference
+#: onboarding renders; 5140 templates is the paper's bank (``grids.NUM_TEMPLATES``).
+BANK_SIZE = 96
+BANK_TEMPLATES = 5140
 
 #: Share of the render's side that the bounding sphere's silhouette spans.
 FILL = 0.9

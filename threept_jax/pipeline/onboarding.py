@@ -16,14 +16,18 @@ Shapes: N rotations, h w render size.
 
 from __future__ import annotations
 
+import pathlib
+import warnings
 from typing import Any
 
 import numpy as np
 
 from threept_jax.data import banks
-from threept_jax.render import Mesh, Renderer
+from threept_jax.data.bop import Symmetries
+from threept_jax.geometry.grids import prior_view_rotations, super_fibonacci_rotations
+from threept_jax.render import Mesh, Renderer, load_mesh, prepare_mesh
 
-__all__ = ["object_camera", "render_object_views"]
+__all__ = ["object_camera", "render_bank", "render_object_views"]
 
 
 def object_camera(
@@ -104,4 +108,59 @@ def _mesh_of(renderer: Renderer, given: Any) -> Mesh:
     raise ValueError(
         "a Renderer built from a RasterMesh does not know its vertices; pass sphere=(centre, "
         "radius) of the model (banks.bounding_sphere of its vertices)"
+    )
+
+
+def render_bank(
+    mesh: Mesh | str | pathlib.Path,
+    obj_id: int,
+    diameter: float,
+    symmetries: Symmetries,
+    size: int = banks.BANK_SIZE,
+    num_templates: int = banks.BANK_TEMPLATES,
+    *,
+    max_faces: int | None = 20000,
+    chunk: int = 64,
+    backend: str = "jax",
+    on_views=None,
+) -> banks.RenderBank:
+    """The :class:`~threept_jax.data.banks.RenderBank` of a model (a Mesh in mm, or its file):
+    the 12 prior views and ``num_templates`` super-Fibonacci templates, ``size`` x ``size``.
+
+    Datagen stores banks for training (``python -m datagen.banks``); inference onboarding
+    renders the same images for unseen objects. ``on_views(n)`` reports progress.
+    """
+    if not isinstance(mesh, Mesh):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # duplicated BOP faces, open meshes: noise here
+            mesh = load_mesh(mesh, models_info=None)
+    centre, radius = banks.bounding_sphere(np.asarray(mesh.vertices, np.float64))
+    work = mesh if max_faces is None or mesh.num_faces <= max_faces else prepare_mesh(
+        mesh, max_faces=max_faces)
+    renderer = Renderer(work, backend)
+    prior_R = prior_view_rotations()
+    tmpl_R = super_fibonacci_rotations(num_templates)
+    # Priors and templates in one sequence of equal chunks: one compiled renderer per mesh
+    # bucket, progress reported every few chunks.
+    all_R = np.concatenate([prior_R, tmpl_R])
+    chunk = max(1, min(chunk, len(all_R)))
+    parts = []
+    step = 8 * chunk
+    for start in range(0, len(all_R), step):
+        R = all_R[start : start + step]
+        parts.append(render_object_views(renderer, R, (size, size), sphere=(centre, radius),
+                                         chunk=chunk))
+        if on_views is not None:
+            on_views(len(R))
+    images = np.concatenate(parts)
+    return banks.RenderBank(
+        obj_id=int(obj_id),
+        prior_rgb=images[: len(prior_R)],
+        prior_rotations=prior_R,
+        template_rgb=images[len(prior_R) :],
+        template_rotations=tmpl_R,
+        symmetries=banks.bank_symmetries(symmetries),
+        diameter=float(diameter),
+        center=centre.astype(np.float32),
+        radius=radius,
     )
