@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from threept_jax.geometry.camera import ray_rotation
 from threept_jax.geometry.grids import super_fibonacci_rotations
 from threept_jax.geometry.rotations import geodesic_angle
 from threept_jax.pipeline.object_generation import single_view_hypotheses, translation_from_box
@@ -41,8 +42,9 @@ def test_single_view_hypotheses(model_points):
     K = np.array([[600.0, 0, 320.0], [0, 600.0, 240.0], [0, 0, 1]], np.float32)
     templates = super_fibonacci_rotations(512)
     gt = 137
-    t_gt = np.array([30.0, -20.0, 700.0])
-    box = _box_cv2(model_points, templates[gt], t_gt, K).astype(np.float32)
+    t_gt = np.array([90.0, -60.0, 700.0])  # off-axis: the camera sees the object turned by the ray
+    R_cam = ray_rotation(t_gt) @ templates[gt]
+    box = _box_cv2(model_points, R_cam, t_gt, K).astype(np.float32)
     # Scores peaked at the ground-truth template, with a second mode 90 degrees away.
     ang_gt = np.asarray(geodesic_angle(templates, templates[gt][None]))
     other = templates[gt] @ Rotation.from_euler("x", 90, degrees=True).as_matrix().astype(np.float32)
@@ -51,8 +53,10 @@ def test_single_view_hypotheses(model_points):
     T, s, valid = single_view_hypotheses(box, K, scores.astype(np.float32), templates, model_points, 4, 45.0)
     T, s, valid = map(np.asarray, (T, s, valid))
     assert valid.all() and np.all(np.diff(s) <= 0)
-    np.testing.assert_allclose(T[0, :3, :3], templates[gt], atol=1e-6)
-    np.testing.assert_allclose(T[0, :3, 3], t_gt, rtol=2e-4, atol=0.05)
-    assert np.degrees(np.asarray(geodesic_angle(T[1, :3, :3], other))) < 15.0
+    # The box centre's ray is not exactly the ray through the object origin: a small error.
+    assert np.degrees(float(geodesic_angle(T[0, :3, :3], R_cam))) < 0.5
+    np.testing.assert_allclose(T[0, :3, 3], t_gt, rtol=5e-3)
+    other_cam = ray_rotation(t_gt) @ other
+    assert np.degrees(float(geodesic_angle(T[1, :3, :3], other_cam))) < 15.0
     angles = np.degrees(np.asarray(geodesic_angle(T[:, None, :3, :3], T[None, :, :3, :3])))
     assert angles[~np.eye(4, dtype=bool)].min() >= 45.0

@@ -71,6 +71,7 @@ import numpy as np
 
 from threept_jax.data.bop import ContinuousSymmetry, Symmetries
 from threept_jax.eval.symmetry import symmetry_transforms
+from threept_jax.geometry.camera import ray_rotation
 
 BANK_FORMAT_VERSION = 1
 #: Default render side (pixels) and template count of the banks datagen writes and inference
@@ -138,27 +139,6 @@ def bounding_sphere(vertices: np.ndarray) -> tuple[np.ndarray, float]:
         raise ValueError(f"vertices must be [N, 3] with N >= 1, got {v.shape}")
     c = (v.min(0) + v.max(0)) / 2.0
     return c, float(np.linalg.norm(v - c, axis=1).max())
-
-
-def ray_rotation(points_cam: np.ndarray) -> np.ndarray:
-    """[..., 3] points in the camera -> [..., 3, 3] smallest rotation taking +z to their ray.
-
-    Rodrigues' formula for the rotation about ``z x d`` by the angle between z and ``d``
-    (identity on the axis). Float64 NumPy.
-    """
-    d = np.asarray(points_cam, np.float64)
-    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
-    z = np.array([0.0, 0.0, 1.0])
-    v = np.cross(z, d)  # sin(angle) * axis
-    c = d[..., 2]  # cos(angle)
-    vx = np.zeros((*d.shape[:-1], 3, 3))
-    vx[..., 0, 1], vx[..., 0, 2] = -v[..., 2], v[..., 1]
-    vx[..., 1, 0], vx[..., 1, 2] = v[..., 2], -v[..., 0]
-    vx[..., 2, 0], vx[..., 2, 1] = -v[..., 1], v[..., 0]
-    # R = I + [v]x + [v]x^2 / (1 + c); the ray never points backwards (c > -1) for a point
-    # in front of the camera.
-    denom = np.maximum(1.0 + c, 1e-12)[..., None, None]
-    return np.eye(3) + vx + (vx @ vx) / denom
 
 
 def object_centred_rotation(R_cam_obj: np.ndarray, center_cam: np.ndarray) -> np.ndarray:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 Array = jax.Array
 
@@ -101,3 +102,26 @@ def look_at(eye: Array, target: Array, up: Array = (0.0, 0.0, 1.0)) -> Array:
     y = jnp.cross(z, x)
     R_world_cam = jnp.stack([x, y, z], axis=-1)
     return invert(make_transform(R_world_cam, eye))
+
+
+def ray_rotation(points_cam: Array) -> Array:
+    """[..., 3] points (or ray directions) in the camera -> [..., 3, 3] smallest rotation that
+    takes the optical axis +z onto their ray.
+
+    Rodrigues' formula about ``z x d`` by the angle between z and d (identity on the axis).
+    Object-centred templates (``threept_jax.data.banks``) are related to camera rotations by
+    it: ``R_cam_obj = ray_rotation(centre) @ R_template``. NumPy input is computed in float64
+    NumPy, JAX input (traced too) in JAX.
+    """
+    xp = jnp if isinstance(points_cam, jax.Array) else np
+    d = xp.asarray(points_cam, None if xp is jnp else np.float64)
+    d = d / xp.linalg.norm(d, axis=-1, keepdims=True)
+    v = xp.stack([-d[..., 1], d[..., 0], xp.zeros_like(d[..., 0])], -1)  # z x d = sin * axis
+    c = d[..., 2]  # cos of the angle
+    o = xp.zeros_like(c)
+    vx = xp.stack([xp.stack([o, -v[..., 2], v[..., 1]], -1),
+                   xp.stack([v[..., 2], o, -v[..., 0]], -1),
+                   xp.stack([-v[..., 1], v[..., 0], o], -1)], -2)
+    # R = I + [v]x + [v]x^2 / (1 + c); a point in front of the camera never has c = -1.
+    denom = xp.maximum(1.0 + c, 1e-12)[..., None, None]
+    return xp.eye(3, dtype=vx.dtype) + vx + (vx @ vx) / denom

@@ -17,7 +17,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from threept_jax.geometry.camera import make_transform, project
+from threept_jax.geometry.camera import make_transform, project, ray_rotation
 from threept_jax.geometry.so3_kde import top_k_separated
 
 Array = jax.Array
@@ -89,14 +89,19 @@ def single_view_hypotheses(box_xyxy: Array, K: Array, template_scores: Array,
 
     Args:
       box_xyxy: [4] detected box; K: [3, 3]; template_scores: [T] (higher is better);
-      template_rotations: [T, 3, 3] R_cam_obj of the templates; points: [N, 3] model points.
+      template_rotations: [T, 3, 3] object-centred rotations of the templates (the bank
+        camera looks at the object's centre, ``threept_jax.data.banks``); points: [N, 3]
+        model points.
 
     Returns (T_cam_obj [K, 4, 4], scores [K], valid [K]): the top ``num_hypotheses`` templates
-    at least ``min_angle_deg`` apart (3PT uses K = 8 and 45 degrees), each with the translation
-    that fits the box at that rotation.
+    at least ``min_angle_deg`` apart (3PT uses K = 8 and 45 degrees), each turned from the
+    object-centred view to the camera by the rotation of the ray through the box centre
+    (``ray_rotation``), with the translation that fits the box at that rotation.
     """
     idx, valid = top_k_separated(template_rotations, template_scores, num_hypotheses, min_angle_deg)
-    R = jnp.asarray(template_rotations)[idx]
+    centre = (jnp.asarray(box_xyxy[:2]) + jnp.asarray(box_xyxy[2:])) / 2 - 0.5
+    ray = jnp.linalg.solve(jnp.asarray(K, jnp.float32), jnp.append(centre, 1.0).astype(jnp.float32))
+    R = ray_rotation(ray) @ jnp.asarray(template_rotations)[idx]
     t = translation_from_box(jnp.broadcast_to(box_xyxy, (num_hypotheses, 4)),
                              jnp.broadcast_to(K, (num_hypotheses, 3, 3)), R, points)
     scores = jnp.where(valid, jnp.asarray(template_scores)[idx], -jnp.inf)
