@@ -1,0 +1,169 @@
+"""``run_scene``: detected instances with poses from one or several calibrated views.
+
+Single view: every detection is an instance; its pose is the best of its hypotheses (top
+template turned by the box ray, translation fitted to the box).
+
+Multi-view (DESIGN.md section 1, stage 2): detections of each view are matched across views
+along the epipolar rays through their box centres (same object id), triangulated, and kept when
+seen in at least ``min_views`` views. The orientation proposals of every member view (its top
+``proposals_per_view`` templates, turned by the view's box ray and brought to the world frame)
+are fused with a von Mises-Fisher kernel density on SO(3); the top ``num_hypotheses`` rotations
+at least ``min_angle_deg`` apart, each refined by mean shift on that density (finer than the
+template grid), become the instance's hypotheses, the translation puts the
+object's bounding-sphere centre at the triangulated point.
+
+Masks are the silhouettes of the best pose rendered in each view, each pixel going to the
+highest-scoring instance that covers it (no learned segmentation before the refiner lands).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import jax.numpy as jnp
+import numpy as np
+
+from threept_jax.geometry.camera import invert, ray_rotation
+from threept_jax.geometry.so3_kde import (kappa_from_std_deg, kde_mean_shift, top_k_separated,
+                                          vmf_kde)
+from threept_jax.geometry.triangulation import match_across_views
+
+from infer.detect import Detection, SceneDetector
+from infer.visualize import PoseRenderer, detection_masks
+
+
+@dataclasses.dataclass(frozen=True)
+class Instance:
+    """One object instance found in a scene.
+
+    Attributes:
+      obj_id: object id.
+      score: in [0, 1], the mean detection score of its views.
+      T_world_obj: [4, 4] best pose in the world frame (the camera frame for one view), mm.
+      hypotheses: [K, 4, 4] pose hypotheses (world frame), best first.
+      hypothesis_scores: [K].
+      boxes: {view index: [4] xyxy box}; views where the instance was detected.
+      masks: {view index: bool [H, W]} rendered silhouettes in every view (when requested).
+    """
+
+    obj_id: int
+    score: float
+    T_world_obj: np.ndarray
+    hypotheses: np.ndarray
+    hypothesis_scores: np.ndarray
+    boxes: dict
+    masks: dict
+
+
+def _check_views(images, Ks, T_cam_world):
+    V = len(images)
+    if V == 0:
+        raise ValueError("run_scene needs at least one image")
+    if len(Ks) != V:
+        raise ValueError(f"{V} images but {len(Ks)} intrinsics: give one K per view")
+    if T_cam_world is None:
+        if V > 1:
+            raise ValueError("several views need T_cam_world [V, 4, 4] (world -> camera) per view")
+        return np.eye(4, dtype=np.float32)[None]
+    T = np.asarray(T_cam_world, np.float32)
+    if T.shape != (V, 4, 4):
+        raise ValueError(f"T_cam_world must be [V={V}, 4, 4], got {T.shape}")
+    R = T[:, :3, :3].astype(np.float64)
+    if not np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-3) or np.any(
+            np.abs(np.linalg.det(R) - 1) > 1e-3):
+        raise ValueError("T_cam_world rotations are not orthonormal: pass world -> camera "
+                         "rigid transforms (OpenCV axes, millimetres)")
+    return T
+
+
+def fuse_views(detections: Sequence[Sequence[Detection]], Ks: np.ndarray, T_cam_world: np.ndarray,
+               objects: dict, *, min_views: int = 3, max_epipolar_px: float = 10.0,
+               proposals_per_view: int = 500, kernel_std_deg: float = 10.0,
+               logit_scale: float = 10.0, num_hypotheses: int = 8,
+               min_angle_deg: float = 45.0) -> list[Instance]:
+    """Multi-view object generation (module docstring) from per-view detections.
+
+    ``objects`` maps obj_id to its ``OnboardedObject`` (template rotations and sphere centre).
+    Each proposal weighs ``softmax(logit_scale * cosine)`` over its view's proposals (the
+    detector's own orientation logits: pass its learned ``logit_scale``), so every view carries
+    the same mass.
+    """
+    V = len(detections)
+    centres = [np.array([(d.box[:2] + d.box[2:]) / 2 - 0.5 for d in dets]).reshape(-1, 2)
+               for dets in detections]
+    labels = [np.array([d.obj_id for d in dets], np.int64) for dets in detections]
+    tracks = match_across_views(centres, Ks, T_cam_world, labels=labels,
+                                max_epipolar_px=max_epipolar_px, min_views=min(min_views, V))
+    T_world_cam = np.asarray(invert(jnp.asarray(T_cam_world)))
+    kappa = kappa_from_std_deg(kernel_std_deg)
+    out = []
+    for m in range(len(tracks.points)):
+        members = [(v, detections[v][int(i)]) for v, i in enumerate(tracks.detections[m]) if i >= 0]
+        obj = objects[members[0][1].obj_id]
+        props, weights = [], []
+        for v, det in members:
+            top = np.argsort(-det.template_scores)[:proposals_per_view]
+            ray = np.linalg.solve(Ks[v].astype(np.float64),
+                                  np.append((det.box[:2] + det.box[2:]) / 2 - 0.5, 1.0))
+            R_cam = ray_rotation(ray) @ obj.template_rotations[top].astype(np.float64)
+            props.append(T_world_cam[v, :3, :3].astype(np.float64) @ R_cam)
+            logits = logit_scale * det.template_scores[top].astype(np.float64)
+            w = np.exp(logits - logits.max())
+            weights.append(w / w.sum())
+        props = np.concatenate(props).astype(np.float32)
+        weights = np.concatenate(weights).astype(np.float32)
+        density = vmf_kde(props, props, weights, kappa)
+        idx, valid = top_k_separated(props, density, num_hypotheses, min_angle_deg)
+        idx, valid = np.asarray(idx), np.asarray(valid)
+        R = np.asarray(kde_mean_shift(props[idx], props, weights, kappa), np.float64)
+        t = tracks.points[m][None] - R @ obj.center.astype(np.float64)
+        hyp = np.tile(np.eye(4), (len(R), 1, 1))
+        hyp[:, :3, :3], hyp[:, :3, 3] = R, t
+        scores = np.where(valid, np.asarray(density)[idx], -np.inf)
+        out.append(Instance(obj.obj_id, float(np.mean([d.score for _, d in members])),
+                            hyp[0].astype(np.float32), hyp.astype(np.float32),
+                            scores.astype(np.float32), {v: d.box for v, d in members}, {}))
+    out.sort(key=lambda x: -x.score)
+    return out
+
+
+def run_scene(detector: SceneDetector, images: Sequence[np.ndarray], Ks: Sequence[np.ndarray],
+              T_cam_world: np.ndarray | None = None, *, with_masks: bool = True,
+              min_views: int = 3, renderer: PoseRenderer | None = None) -> list[Instance]:
+    """Instances in a scene seen by one or several calibrated RGB views.
+
+    Args:
+      detector: a ``SceneDetector`` holding the onboarded objects.
+      images: V uint8 RGB images [H, W, 3] (sizes may differ).
+      Ks: V intrinsics [3, 3] (pixels, of each image as given).
+      T_cam_world: [V, 4, 4] world -> camera extrinsics (mm); required when V > 1.
+      with_masks: render each instance's silhouette in every view.
+      min_views: multi-view instances must be seen in at least this many views (3PT: 3;
+        capped at V).
+    """
+    T_cam_world = _check_views(images, Ks, T_cam_world)
+    Ks = np.stack([np.asarray(k, np.float32) for k in Ks])
+    detections = [detector.detect(img, k) for img, k in zip(images, Ks)]
+    if len(images) == 1:
+        instances = [Instance(d.obj_id, d.score, d.pose, d.poses, d.pose_scores, {0: d.box}, {})
+                     for d in detections[0]]
+        # The world frame of a single view is its camera frame unless T_cam_world says otherwise.
+        T_wc = np.asarray(invert(jnp.asarray(T_cam_world[0])))
+        instances = [dataclasses.replace(x, T_world_obj=T_wc @ x.T_world_obj,
+                                         hypotheses=T_wc[None] @ x.hypotheses) for x in instances]
+    else:
+        objects = {o.obj_id: o for o in detector.objects}
+        instances = fuse_views(detections, Ks, T_cam_world, objects, min_views=min_views,
+                               logit_scale=detector.logit_scale,
+                               num_hypotheses=detector.num_hypotheses,
+                               min_angle_deg=detector.min_angle_deg)
+    if with_masks and instances:
+        renderer = renderer or PoseRenderer(detector.objects)
+        for v, (img, K) in enumerate(zip(images, Ks)):
+            posed = [Detection(x.obj_id, x.boxes.get(v, np.zeros(4, np.float32)), x.score,
+                               (T_cam_world[v] @ x.T_world_obj)[None], x.hypothesis_scores[:1],
+                               np.zeros(0, np.float32)) for x in instances]
+            for x, mask in zip(instances, detection_masks(posed, K, img.shape[:2], renderer)):
+                x.masks[v] = mask
+    return instances

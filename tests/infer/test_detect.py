@@ -1,0 +1,106 @@
+"""The inference pipeline's mechanics with an untrained tiny detector: onboarding cache, shapes,
+boxes inside the image, hypotheses that fit their boxes (cv2), no recompilation, clear errors."""
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+from flax import nnx
+
+from infer.detect import SceneDetector, check_intrinsics
+from infer.onboarding import Onboarder
+from infer.scene import run_scene
+from threept_jax.models.configs import DetectorConfig
+from threept_jax.models.detector import Detector
+from threept_jax.render import Mesh
+
+
+def _box_mesh(extents, name):
+    tm = trimesh.creation.box(extents)
+    return Mesh(np.asarray(tm.vertices, np.float32), np.asarray(tm.faces, np.int32), name=name)
+
+
+@pytest.fixture(scope="module")
+def pipeline(tmp_path_factory):
+    cfg = DetectorConfig(variant="tiny/16", image_size=64, render_size=32)
+    model = Detector(cfg, rngs=nnx.Rngs(0))
+    cache = tmp_path_factory.mktemp("onboarding")
+    onboarder = Onboarder(model, cfg, "untrained@0", cache_dir=cache, num_templates=48, bank_size=32)
+    meshes = {1: _box_mesh((80, 40, 20), "plate"), 2: _box_mesh((30, 30, 90), "post")}
+    objects = onboarder.onboard_all(meshes, show_progress=False)
+    again = onboarder.onboard_all(meshes, show_progress=False)  # from the cache
+    return model, cfg, objects, again, cache
+
+
+def test_onboarding_is_cached_and_shaped(pipeline):
+    _, cfg, objects, again, cache = pipeline
+    assert len(list(cache.glob("*.npz"))) == 2
+    for a, b in zip(objects, again):
+        assert a.prior_tokens.shape == (cfg.num_prior_tokens, cfg.width)
+        assert a.template_bank.shape == (48, cfg.embed_dim)
+        np.testing.assert_allclose(np.linalg.norm(a.template_bank, axis=-1), 1.0, atol=1e-5)
+        np.testing.assert_array_equal(a.template_bank, b.template_bank)
+        np.testing.assert_array_equal(a.prior_tokens, b.prior_tokens)
+
+
+def test_detect_outputs_fit_their_boxes_and_do_not_recompile(pipeline):
+    model, cfg, objects, _, _ = pipeline
+    det = SceneDetector(model, cfg, objects, num_scales=2, score_threshold=0.0, max_detections=12,
+                        num_hypotheses=4)
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    K = np.array([[150.0, 0, 63.5], [0, 140.0, 47.5], [0, 0, 1]])
+    dets = det.detect(image, K)
+    assert 0 < len(dets) <= 12
+    scores = [d.score for d in dets]
+    assert scores == sorted(scores, reverse=True)
+    points = {o.obj_id: o.points for o in objects}
+    for d in dets:
+        assert d.obj_id in (1, 2)
+        assert np.all(d.box >= -1e-3) and d.box[2] <= 128 + 1e-3 and d.box[3] <= 96 + 1e-3
+        assert d.poses.shape == (4, 4, 4) and d.template_scores.shape == (48,)
+        # The best hypothesis projects (OpenCV) onto its detection box: same centre, same
+        # diagonal (the aspect ratio is the rotation's, not the box's).
+        T = d.pose.astype(np.float64)
+        uv, _ = cv2.projectPoints(points[d.obj_id].astype(np.float64), cv2.Rodrigues(T[:3, :3])[0],
+                                  T[:3, 3], K, None)
+        box = np.concatenate([uv[:, 0].min(0), uv[:, 0].max(0)]) + 0.5
+        np.testing.assert_allclose((box[:2] + box[2:]) / 2, (d.box[:2] + d.box[2:]) / 2, atol=0.05)
+        np.testing.assert_allclose(np.linalg.norm(box[2:] - box[:2]),
+                                   max(np.linalg.norm(d.box[2:] - d.box[:2]), 1.0), rtol=1e-3)
+    compiled = det._compiled(image.shape[:2])
+    before = compiled._cache_size()
+    det.detect(rng.integers(0, 256, image.shape, dtype=np.uint8), K)
+    assert compiled._cache_size() == before
+
+
+def test_run_scene_single_view_masks(pipeline):
+    model, cfg, objects, _, _ = pipeline
+    det = SceneDetector(model, cfg, objects, num_scales=1, score_threshold=0.0, max_detections=3)
+    image = np.full((64, 64, 3), 128, np.uint8)
+    K = np.array([[80.0, 0, 31.5], [0, 80.0, 31.5], [0, 0, 1]])
+    inst = run_scene(det, [image], [K])
+    assert len(inst) == 3
+    union = np.zeros((64, 64), int)
+    for x in inst:
+        assert x.masks[0].shape == (64, 64) and x.masks[0].dtype == bool
+        union += x.masks[0]
+    assert union.max() <= 1  # a pixel belongs to one instance
+
+
+def test_bad_inputs_name_the_problem(pipeline):
+    model, cfg, objects, _, _ = pipeline
+    det = SceneDetector(model, cfg, objects, num_scales=1)
+    image = np.zeros((64, 64, 3), np.uint8)
+    with pytest.raises(ValueError, match="uint8"):
+        det.detect(image.astype(np.float32), np.eye(3))
+    with pytest.raises(ValueError, match="fx, fy > 0"):
+        check_intrinsics(np.diag([-1.0, 1.0, 1.0]), (64, 64))
+    with pytest.raises(ValueError, match="normalised"):
+        check_intrinsics(np.array([[0.9, 0, 0.5], [0, 0.9, 0.5], [0, 0, 1]]), (64, 64))
+    with pytest.raises(ValueError, match="image size"):
+        check_intrinsics(np.array([[90.0, 0, 640], [0, 90, 480], [0, 0, 1]]), (64, 64))
+    with pytest.raises(ValueError, match="T_cam_world"):
+        run_scene(det, [image, image], [np.eye(3), np.eye(3)])
+    with pytest.raises(ValueError, match="no objects"):
+        SceneDetector(model, cfg, [])
