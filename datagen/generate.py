@@ -180,7 +180,7 @@ def _manifest_identity(m: dict[str, Any]) -> dict[str, Any]:
 
 def _write_json(path: pathlib.Path, content: Any) -> None:
     data = (json.dumps(content, indent=1, sort_keys=True) + "\n").encode()
-    bop._atomic_write_bytes(path, data)
+    bop.atomic_write_bytes(path, data)
 
 
 def check_output(out: pathlib.Path, split_dir: pathlib.Path, manifest: dict[str, Any]) -> None:

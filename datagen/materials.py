@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from threept_jax.render.mesh import Mesh
-from threept_jax.render.mitsuba_backend import Material
+from threept_jax.render.mitsuba_backend import Material, linear_to_srgb
 
 TEXTURE_KINDS = ("noise", "stripes", "checker", "scratches")
 MATERIAL_KINDS = ("diffuse", "plastic", "conductor")
@@ -52,12 +52,6 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     """sRGB values in [0, 1] -> linear RGB (IEC 61966-2-1)."""
     c = np.asarray(c, np.float64)
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(c: np.ndarray) -> np.ndarray:
-    """Linear RGB -> sRGB in [0, 1] (clipped), the inverse of :func:`srgb_to_linear`."""
-    x = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
 
 
 def random_color(rng: np.random.Generator, metal: bool = False) -> np.ndarray:

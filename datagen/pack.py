@@ -159,7 +159,7 @@ def _write_table(out: pathlib.Path, table: dict[int, dict[str, Any]]) -> None:
     """``objects.json`` (``threept_jax.data.banks.load_object_table`` format, plus ``mesh``,
     ``mesh_sha256``, ``source`` and ``source_obj_id``), keys in numeric order."""
     rows = {str(k): table[k] for k in sorted(table)}
-    bop._atomic_write_bytes(out / TABLE, (json.dumps(rows, indent=1, sort_keys=True) + "\n")
+    bop.atomic_write_bytes(out / TABLE, (json.dumps(rows, indent=1, sort_keys=True) + "\n")
                             .encode())
 
 
@@ -400,7 +400,7 @@ def pack(
                     for s, n, m in zip(sources, counts, maps)],
         "image_format": image_format,
     }
-    bop._atomic_write_bytes(folder / "index.json",
+    bop.atomic_write_bytes(folder / "index.json",
                             (json.dumps(index, indent=1, sort_keys=True) + "\n").encode())
     if banks:
         from datagen import banks as DB

@@ -58,7 +58,7 @@ from datagen import cameras as cams
 from datagen import layouts as L
 from datagen import materials as Mt
 from datagen.meshes import LoadedMesh, MeshPool, MeshSkippedWarning
-from threept_jax.data.bop import BopSceneWriter, Camera, GtInstance
+from threept_jax.data.bop import BopSceneWriter, Camera, GtInstance, atomic_write_bytes
 from threept_jax.render.mesh import Mesh, load_mesh
 from threept_jax.render.mitsuba_backend import Material, MitsubaRenderer, MitsubaScene
 
@@ -183,13 +183,7 @@ def write_ply(
     face["n"] = 3
     face["i"] = f
     data = ("\n".join(header) + "\n").encode() + vert.tobytes() + face.tobytes()
-    _atomic_write(path, data)
-
-
-def _atomic_write(path: pathlib.Path, data: bytes) -> None:
-    from threept_jax.data.bop import _atomic_write_bytes
-
-    _atomic_write_bytes(pathlib.Path(path), data)
+    atomic_write_bytes(path, data)
 
 
 def _ply_header(path: pathlib.Path) -> tuple[list[str], int]:
@@ -214,7 +208,7 @@ def copy_bop_model(src: pathlib.Path, dst: pathlib.Path) -> None:
     lines, stop = _ply_header(src)
     raw = src.read_bytes()
     if not any(line.split()[:2] == ["comment", "TextureFile"] for line in lines):
-        _atomic_write(dst, raw)
+        atomic_write_bytes(dst, raw)
         return
     out_lines = []
     for line in lines:
@@ -224,10 +218,10 @@ def copy_bop_model(src: pathlib.Path, dst: pathlib.Path) -> None:
             if not tex.is_file():
                 continue
             name = dst.stem + tex.suffix.lower()
-            _atomic_write(dst.parent / name, tex.read_bytes())
+            atomic_write_bytes(dst.parent / name, tex.read_bytes())
             line = f"comment TextureFile {name}"
         out_lines.append(line)
-    _atomic_write(dst, ("\n".join(out_lines) + "\n").encode("ascii") + raw[stop:])
+    atomic_write_bytes(dst, ("\n".join(out_lines) + "\n").encode("ascii") + raw[stop:])
 
 
 def _has_file_normals(path: pathlib.Path) -> bool:
@@ -270,7 +264,7 @@ def export_model(loaded: LoadedMesh, dst: pathlib.Path) -> None:
             buf = io.BytesIO()
             image.convert("RGB").save(buf, format="PNG", optimize=False)
             tex_name = dst.stem + ".png"
-            _atomic_write(dst.parent / tex_name, buf.getvalue())
+            atomic_write_bytes(dst.parent / tex_name, buf.getvalue())
             uv = np.asarray(visual.uv, np.float64)
     write_ply(dst, m.vertices, m.faces, colors, uv, tex_name)
 
@@ -397,35 +391,6 @@ class AssetCache:
 
 # --------------------------------------------------------------------------------------------
 # Deterministic path tracing.
-
-
-class DeterministicMitsubaScene(MitsubaScene):
-    """``MitsubaScene`` whose path-traced image is bit-reproducible for a given seed.
-
-    Mitsuba accumulates the samples of a box reconstruction filter with a block reduction in a
-    fixed order; the default Gaussian filter splats every sample into 4x4 pixels with atomic
-    adds whose order follows thread scheduling (about 1e-7 relative differences, enough to flip
-    uint8 roundings). The box filter with random sub-pixel positions still antialiases.
-    """
-
-    def _path_trace(self, K, T, hw, spp, seed, linear):
-        from threept_jax.render import mitsuba_backend as mb
-        from threept_jax.render.crop import crop_and_resize
-
-        mi = self.mi
-        exact = abs(K[0, 0] - K[1, 1]) < 1e-9 * K[0, 0]
-        if exact:
-            K_sq, hw_sq, box = K, hw, None
-        else:
-            K_sq, hw_sq, box = mb.square_pixel_camera(K, hw)
-        sensor_dict = mb._sensor_dict(mi, K_sq, T, hw_sq)
-        sensor_dict["film"]["rfilter"] = {"type": "box"}
-        sensor = mi.load_dict(sensor_dict)
-        img = np.array(mi.render(self._scene, sensor=sensor, spp=int(spp), seed=int(seed)))
-        img = img[..., :3].astype(np.float32)
-        if box is not None:
-            img = np.asarray(crop_and_resize(img, box, hw))
-        return img if linear else Mt.linear_to_srgb(img).astype(np.float32)
 
 
 # --------------------------------------------------------------------------------------------
@@ -722,7 +687,7 @@ def generate_scene(
     has_floor = ground_z is not None
     for m in range(cfg.images_per_scene):
         t1 = time.perf_counter()
-        scene = DeterministicMitsubaScene(max_depth=cfg.max_depth)
+        scene = MitsubaScene(max_depth=cfg.max_depth)
         for mesh, look, T in zip(target_meshes, looks, T_wo_t):
             scene.add_object(mesh, T, look.material)
         for mesh, look, T in zip(dis_meshes, dis_looks, T_wo_d):

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import io
 import json
 import os
 import pathlib
-import tempfile
 from collections.abc import Mapping
 
 import jax
@@ -24,7 +24,7 @@ from flax import nnx
 from tqdm import tqdm
 
 from threept_jax.data.banks import BANK_SIZE, BANK_TEMPLATES
-from threept_jax.data.bop import ContinuousSymmetry, Symmetries
+from threept_jax.data.bop import ContinuousSymmetry, Symmetries, atomic_write_bytes
 from threept_jax.data.pipeline import resize_renders
 from threept_jax.models.configs import DetectorConfig
 from threept_jax.models.detector import Detector
@@ -88,12 +88,9 @@ def _points(mesh: Mesh, n: int = NUM_POINTS) -> np.ndarray:
 
 
 def _atomic_savez(path: pathlib.Path, **arrays) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    os.close(fd)
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-    os.replace(tmp, path)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    atomic_write_bytes(path, buf.getvalue())
 
 
 class Onboarder:

@@ -380,7 +380,9 @@ def _json_dumps_bop(content) -> str:
     return buf.getvalue()
 
 
-def _atomic_write_bytes(path: pathlib.Path, data: bytes) -> None:
+def atomic_write_bytes(path: pathlib.Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file and a rename: a killed writer
+    leaves the old file or none, never a torn one. Creates the parent folder."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
@@ -395,7 +397,7 @@ def _atomic_write_bytes(path: pathlib.Path, data: bytes) -> None:
 
 def write_json_atomic(path, content) -> None:
     """Write ``content`` as BOP-formatted JSON to ``path`` via a temporary file and rename."""
-    _atomic_write_bytes(pathlib.Path(path), _json_dumps_bop(content).encode())
+    atomic_write_bytes(pathlib.Path(path), _json_dumps_bop(content).encode())
 
 
 def _load_json(path: pathlib.Path):
@@ -881,7 +883,7 @@ def write_pose_results(path, estimates: Iterable[PoseEstimate], time_tol: float 
                 ]
             )
         )
-    _atomic_write_bytes(pathlib.Path(path), ("\n".join(lines) + "\n").encode())
+    atomic_write_bytes(pathlib.Path(path), ("\n".join(lines) + "\n").encode())
 
 
 def read_pose_results(path, rotation_atol: float = 1e-3) -> list[PoseEstimate]:
@@ -1069,7 +1071,7 @@ def _write_image(path: pathlib.Path, im: np.ndarray, jpg_quality: int = 95) -> N
     ok, buf = cv2.imencode(ext, np.ascontiguousarray(im), params)
     if not ok:
         raise ValueError(f"could not encode image {path}")
-    _atomic_write_bytes(path, buf.tobytes())
+    atomic_write_bytes(path, buf.tobytes())
 
 
 class BopSceneWriter:
@@ -1220,7 +1222,7 @@ def write_camera_info(path, K, width: int, height: int, depth_scale: float | Non
     }
     if depth_scale is not None:
         out["depth_scale"] = float(depth_scale)
-    _atomic_write_bytes(pathlib.Path(path), json.dumps(out, indent=2, sort_keys=True).encode())
+    atomic_write_bytes(pathlib.Path(path), json.dumps(out, indent=2, sort_keys=True).encode())
 
 
 __all__ += ["write_camera_info", "POSE_CSV_HEADER"]

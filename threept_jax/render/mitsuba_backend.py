@@ -127,9 +127,10 @@ def _check_pose_k(T: np.ndarray, K: np.ndarray, what: str = "T_cam_obj") -> None
     check_pose_and_intrinsics(T, K, what)
 
 
-def _srgb(linear: np.ndarray) -> np.ndarray:
-    x = np.clip(linear, 0.0, None)
-    return np.clip(np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055), 0, 1)
+def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
+    """Linear RGB -> sRGB-encoded values in [0, 1] (IEC 61966-2-1), clipped."""
+    x = np.clip(linear, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
 
 
 def _mi_mesh(mi, mesh: Mesh, name: str, bsdf, vertices: np.ndarray | None = None, flip_uv=True):
@@ -594,7 +595,7 @@ class MitsubaScene:
             from threept_jax.render.crop import crop_and_resize
 
             img = np.asarray(crop_and_resize(img, box, hw))
-        return img if linear else _srgb(img).astype(np.float32)
+        return img if linear else linear_to_srgb(img).astype(np.float32)
 
     def _geometry(self, K, T, hw, near, outputs):
         fields = {"instance"} | ({"p"} if "xyz" in outputs else set())
@@ -642,7 +643,11 @@ def _sensor_dict(mi, K: np.ndarray, T_cam_world: np.ndarray, hw) -> dict:
             "type": "hdrfilm",
             "width": int(W),
             "height": int(H),
-            "rfilter": {"type": "gaussian"},
+            # The box filter accumulates samples in a fixed order, so a render is bit-identical
+            # for a seed (datagen's determinism); the default Gaussian filter splats with atomic
+            # adds in thread order (1e-7 differences that flip uint8 roundings). Random
+            # sub-pixel sample positions still antialias.
+            "rfilter": {"type": "box"},
             "pixel_format": "rgb",
         },
         "sampler": {"type": "independent"},
