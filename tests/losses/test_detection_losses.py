@@ -199,3 +199,25 @@ def test_config_validation():
         DetectorLossConfig(symmetric_positives="any")
     with pytest.raises(ValueError, match="soft_matching"):
         DetectorLossConfig(soft_matching=2.0)
+
+
+def test_one_to_many_matching_hand_case():
+    # k = 2: the target is repeated twice, so the two cheapest hypotheses (0 and 1: inside the
+    # ground truth, most confident) are both positives and the far one (2) stays a negative
+    # with full weight (it overlaps nothing).
+    gt, preds, presence, emb, bank, outputs, targets = _hand_case()
+    cfg = DetectorLossConfig(matches_per_target=2)
+    loss, m = jax.jit(detection_loss, static_argnums=3)(outputs, targets, None, cfg)
+    presence_ref = (focal(presence[0], 1) + focal(presence[1], 1) + focal(presence[2], 0)) / 2
+    l1_ref = sum(sum(abs(a - b) for a, b in zip(cxcywh(p), cxcywh(gt), strict=True))
+                 for p in preds[:2]) / 2
+    ious = [iou_xyxy(p, gt) for p in preds[:2]]  # both inside the target: GIoU = IoU
+    logits = 5.0 * emb[:2] @ bank.T - 1.0  # [2 matched, 3 templates]
+    orient_ref = sum(focal(float(x), t == 1) for row in logits for t, x in enumerate(row)) / 2
+    assert float(m["num_boxes"]) == 2.0
+    np.testing.assert_allclose(float(m["loss_presence"]), presence_ref, rtol=1e-5)
+    np.testing.assert_allclose(float(m["loss_l1"]), l1_ref, rtol=1e-5)
+    np.testing.assert_allclose(float(m["loss_giou"]), 1 - sum(ious) / 2, rtol=1e-5)
+    np.testing.assert_allclose(float(m["loss_orientation"]), orient_ref, rtol=1e-5)
+    with pytest.raises(ValueError, match="matches_per_target"):
+        DetectorLossConfig(matches_per_target=0)

@@ -39,6 +39,7 @@ def _base() -> ml_collections.ConfigDict:
         embed_dim=ml_collections.FieldReference(None, field_type=int),
         num_registers=0,
         posemb="learned",
+        stem="patch",
         share_backbone=True,
         attention_impl=ml_collections.FieldReference(None, field_type=str),
         remat=False,
@@ -50,6 +51,7 @@ def _base() -> ml_collections.ConfigDict:
         presence_weight=2.0, l1_weight=5.0, giou_weight=2.0, orientation_weight=1.0,
         focal_alpha=0.25, focal_gamma=2.0, orientation_alpha=0.25, orientation_gamma=2.0,
         soft_matching=1.0, symmetric_positives="nearest", symmetry_chunk=16,
+        matches_per_target=1,
     ))
     c.optim = ml_collections.ConfigDict(dict(
         learning_rate=1e-3,
