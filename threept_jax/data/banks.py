@@ -70,6 +70,7 @@ import cv2
 import numpy as np
 
 from threept_jax.data.bop import ContinuousSymmetry, Symmetries
+from threept_jax.data.records import NPY_HEADER_LOCK
 from threept_jax.eval.symmetry import symmetry_transforms
 from threept_jax.geometry.camera import ray_rotation
 
@@ -325,7 +326,8 @@ def _npz_member_memmap(path: pathlib.Path, name: str) -> np.ndarray:
         version = np.lib.format.read_magic(f)
         read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
                        else np.lib.format.read_array_header_2_0)
-        shape, fortran, dtype = read_header(f)
+        with NPY_HEADER_LOCK:
+            shape, fortran, dtype = read_header(f)
         offset = f.tell()
     if fortran or len(shape) != 1:
         raise ValueError(f"{path}: member {name} must be a 1-D C-ordered array")
@@ -352,7 +354,7 @@ class BankFile:
             raise ValueError(f"{self.path} is not a render bank written by save_bank (not an "
                              ".npz archive); re-render it")
         try:
-            with np.load(self.path, allow_pickle=False) as z:
+            with NPY_HEADER_LOCK, np.load(self.path, allow_pickle=False) as z:
                 version = int(z["version"])
                 if version != BANK_FORMAT_VERSION:
                     raise ValueError(

@@ -30,6 +30,7 @@ Visible masks never overlap, so one 16-bit instance map holds all of them lossle
 from __future__ import annotations
 
 import io
+import threading
 from typing import Any
 
 import cv2
@@ -94,20 +95,29 @@ def encode_example(example: dict[str, Any], image_format: str = "png", jpeg_qual
     return buf.getvalue()
 
 
+#: Held while NumPy parses ``.npy`` headers (``np.load`` of records and render banks). NumPy
+#: parses them with ``ast.literal_eval``, and CPython 3.11 (seen on 3.11.7) can fail with
+#: "SystemError: AST constructor recursion depth mismatch" and abort when several threads do so
+#: at once (python/cpython#106905), which grain's read threads would. Parsing a header takes
+#: microseconds; image decoding stays outside the lock.
+NPY_HEADER_LOCK = threading.Lock()
+
+
 def decode_example(data: bytes) -> dict[str, Any]:
     """Inverse of ``encode_example``: bytes -> dict of NumPy arrays (module table)."""
-    with np.load(io.BytesIO(data), allow_pickle=False) as z:
-        version = int(z["version"])
-        if version != FORMAT_VERSION:
-            raise ValueError(
-                f"record format version {version}, this code reads {FORMAT_VERSION}: re-pack the "
-                "shards with `python -m datagen.pack`"
-            )
-        out = {k: z[k] for k in _ARRAY_FIELDS}
-        bgr = cv2.imdecode(z["rgb"], cv2.IMREAD_COLOR)
-        out["rgb"] = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-        out["instances"] = cv2.imdecode(z["instances"], cv2.IMREAD_UNCHANGED).astype(np.uint16)
-        out["source"] = str(z["source"])
+    with NPY_HEADER_LOCK, np.load(io.BytesIO(data), allow_pickle=False) as z:
+        raw = {k: z[k] for k in ("version", "rgb", "instances", "source", *_ARRAY_FIELDS)}
+    version = int(raw["version"])
+    if version != FORMAT_VERSION:
+        raise ValueError(
+            f"record format version {version}, this code reads {FORMAT_VERSION}: re-pack the "
+            "shards with `python -m datagen.pack`"
+        )
+    out = {k: raw[k] for k in _ARRAY_FIELDS}
+    bgr = cv2.imdecode(raw["rgb"], cv2.IMREAD_COLOR)
+    out["rgb"] = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    out["instances"] = cv2.imdecode(raw["instances"], cv2.IMREAD_UNCHANGED).astype(np.uint16)
+    out["source"] = str(raw["source"])
     return out
 
 
