@@ -82,7 +82,7 @@ def model_config(config: ml_collections.ConfigDict) -> DetectorConfig:
     return DetectorConfig(
         variant=m.variant, image_size=m.image_size, render_size=m.render_size,
         tokens_per_view=m.tokens_per_view, embed_dim=m.embed_dim, num_registers=m.num_registers,
-        posemb=m.posemb, stem=m.stem, share_backbone=m.share_backbone, attention_impl=m.attention_impl,
+        posemb=m.posemb, share_backbone=m.share_backbone, attention_impl=m.attention_impl,
         remat=m.remat, dtype=resolve_dtype(m.dtype), param_dtype=jnp.dtype(m.param_dtype))
 
 

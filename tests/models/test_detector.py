@@ -213,23 +213,3 @@ def test_training_loss_gradients_reach_every_head(tiny):
                     ("box_out", grads.box_head.out.kernel)]:
         assert norm(g) > 0, name
 
-
-def test_conv_stem_keeps_the_patch_grid_and_rejects_odd_patches():
-    from threept_jax.models.configs import ViTConfig
-    from threept_jax.models.vit import ViT
-
-    cfg = ViTConfig.from_variant("tiny/8", image_size=32, stem="conv")
-    vit = ViT(cfg, rngs=nnx.Rngs(0))
-    out = vit(jnp.zeros((2, 48, 32, 3)))["patch_tokens"]
-    assert out.shape == (2, (48 // 8) * (32 // 8), 64)
-    assert len(vit.patch_embed.convs) == 3  # log2(8) stride-2 convolutions
-    # Each output token sees only its own region plus the 3x3 halos: changing a pixel far
-    # from patch (0, 0) leaves that token's stem features unchanged.
-    x = np.zeros((1, 32, 32, 3), np.float32)
-    y = x.copy()
-    y[0, 31, 31] = 1.0
-    fx, fy = (np.asarray(vit.patch_embed(jnp.asarray(v))) for v in (x, y))
-    np.testing.assert_array_equal(fx[0, 0, 0], fy[0, 0, 0])
-    assert not np.allclose(fx[0, -1, -1], fy[0, -1, -1])
-    with pytest.raises(ValueError, match="power-of-two"):
-        ViTConfig.from_variant("tiny/12", image_size=48, stem="conv")

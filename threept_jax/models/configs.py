@@ -78,10 +78,6 @@ class ViTConfig:
     ``(image_size // patch_size)**2`` rows and is bilinearly resized for any other grid.
     ``num_registers`` learned register tokens (Darcet et al., "Vision Transformers Need
     Registers", 2024) join the sequence and are dropped from the patch outputs.
-    ``stem``: ``"patch"`` (the standard ViT patchify convolution) or ``"conv"`` (log2(patch)
-    3x3 stride-2 convolutions, then a 1x1 projection: Xiao et al., "Early Convolutions Help
-    Transformers See Better", NeurIPS 2021), which makes small ViTs trained from scratch learn
-    far faster for the same compute; needs a power-of-two patch size.
     ``dtype`` is the compute dtype, ``param_dtype`` the storage dtype; layer norms, softmax and
     the position-embedding resize always run in float32. ``attention_impl`` goes to
     ``jax.nn.dot_product_attention``: ``None``/``"xla"`` everywhere, ``"cudnn"`` for cuDNN flash
@@ -96,7 +92,6 @@ class ViTConfig:
     image_size: int = 224
     num_registers: int = 0
     posemb: str = "learned"
-    stem: str = "patch"
     layernorm_epsilon: float = 1e-6
     attention_impl: str | None = None
     remat: bool = False
@@ -117,10 +112,6 @@ class ViTConfig:
             )
         if self.posemb not in ("learned", "sincos2d"):
             raise ValueError(f"posemb must be 'learned' or 'sincos2d', got {self.posemb!r}")
-        if self.stem not in ("patch", "conv"):
-            raise ValueError(f"stem must be 'patch' or 'conv', got {self.stem!r}")
-        if self.stem == "conv" and self.patch_size & (self.patch_size - 1):
-            raise ValueError(f"the conv stem needs a power-of-two patch size, got {self.patch_size}")
         if self.attention_impl not in (None, "xla", "cudnn"):
             raise ValueError(
                 f"attention_impl must be None, 'xla' or 'cudnn', got {self.attention_impl!r}"
@@ -166,8 +157,6 @@ class DetectorConfig:
       embed_dim: dimension of hypothesis and template embeddings; ``None`` = backbone width.
       num_registers: register tokens in both towers.
       posemb: ``"learned"`` (resized bilinearly to any grid) or ``"sincos2d"``.
-      stem: ``"patch"`` or ``"conv"`` (see :class:`ViTConfig`; the ``tiny`` training config
-        uses ``"conv"``).
       share_backbone: one ViT for both towers (default) or two. Sharing halves the backbone
         parameters and, more importantly, puts the prior tokens and the image patch tokens in
         the same feature space before fusion, which suits early fusion and the cosine
@@ -189,7 +178,6 @@ class DetectorConfig:
     embed_dim: int | None = None
     num_registers: int = 0
     posemb: str = "learned"
-    stem: str = "patch"
     share_backbone: bool = True
     attention_impl: str | None = None
     box_head_layers: int = 3
@@ -234,7 +222,6 @@ class DetectorConfig:
             image_size=self.image_size,
             num_registers=self.num_registers,
             posemb=self.posemb,
-            stem=self.stem,
             attention_impl=self.attention_impl,
             remat=self.remat,
             dtype=self.dtype,

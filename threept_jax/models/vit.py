@@ -148,27 +148,6 @@ class EncoderBlock(nnx.Module):
         return x + self.mlp(self.norm2(x))
 
 
-class ConvStem(nnx.Module):
-    """[B, H, W, 3] -> [B, H/p, W/p, D]: log2(p) 3x3 stride-2 convolutions with GELU, channels
-    doubling up to D (at least 16), then a 1x1 projection (Xiao et al. 2021, with GELU instead
-    of BatchNorm + ReLU so that the stem has no batch statistics)."""
-
-    def __init__(self, width: int, patch_size: int, *, dtype: Any, param_dtype: Any,
-                 rngs: nnx.Rngs):
-        n = int(np.log2(patch_size))
-        chans = [3] + [max(16, width >> (n - 1 - i)) for i in range(n)]
-        kw = dict(dtype=dtype, param_dtype=param_dtype, rngs=rngs)
-        self.convs = nnx.List([
-            nnx.Conv(a, b, kernel_size=(3, 3), strides=(2, 2), padding="SAME", **kw)
-            for a, b in zip(chans[:-1], chans[1:])])
-        self.proj = nnx.Conv(chans[-1], width, kernel_size=(1, 1), **kw)
-
-    def __call__(self, x: Array) -> Array:
-        for conv in self.convs:
-            x = jax.nn.gelu(conv(x))
-        return self.proj(x)
-
-
 def _apply_block(block: EncoderBlock, x: Array, mask: Array | None) -> Array:
     return block(x, mask)
 
@@ -191,11 +170,8 @@ class ViT(nnx.Module):
         self.cfg = cfg
         kw = dict(dtype=cfg.dtype, param_dtype=cfg.param_dtype, rngs=rngs)
         p = cfg.patch_size
-        if cfg.stem == "conv":
-            self.patch_embed = ConvStem(cfg.width, p, **kw)
-        else:
-            self.patch_embed = nnx.Conv(3, cfg.width, kernel_size=(p, p), strides=(p, p),
-                                        padding="VALID", **kw)
+        self.patch_embed = nnx.Conv(3, cfg.width, kernel_size=(p, p), strides=(p, p),
+                                    padding="VALID", **kw)
         gh, gw = cfg.native_grid
         if cfg.posemb == "learned":
             init = nnx.initializers.normal(1.0 / np.sqrt(cfg.width))
