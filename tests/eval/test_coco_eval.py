@@ -107,3 +107,8 @@ def test_duplicates_and_detections_outside_targets():
     assert res["segm"]["ap"] == pytest.approx(
         1.0
     )  # duplicate after the TP: precision 1 at recall 1
+
+
+def test_no_detections_score_zero_not_nothing():
+    zero = {"ap": 0.0, "ap50": 0.0, "ap75": 0.0}
+    assert _eval([], [_gt(_rect(5, 5, 25, 25))]) == {"bbox": zero, "segm": zero}

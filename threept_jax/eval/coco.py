@@ -121,7 +121,8 @@ def evaluate_coco(
             else (lambda d: d.segmentation is not None)
         )
         sel = [d for d in dets if field_ok(d)]
-        if not any(field_ok(d) for d in detections):
+        # A type no detection carries is skipped, but no detections at all scores 0 (not {}).
+        if detections and not any(field_ok(d) for d in detections):
             continue
         if not sel:
             out[iou_type] = {"ap": 0.0, "ap50": 0.0, "ap75": 0.0}
