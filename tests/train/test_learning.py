@@ -1,0 +1,62 @@
+"""End to end learning check: rendered scenes -> records -> a short training run that learns.
+
+Procedural meshes are split by hash into training and held-out objects; the detector trains on
+path-traced scenes of the former and is evaluated on scenes of the latter. Held-out AP50 is
+compared with the same model's at initialisation (whose boxes are each patch's own cell, too
+small to reach IoU 0.5 with any object, so its AP50 is 0), and the training loss must fall.
+The run is deterministic on a given machine. Takes about three minutes on two cores.
+"""
+
+import jax
+import numpy as np
+import pytest
+from flax import nnx
+
+from datagen import generate, pack
+from threept_jax.data.banks import load_object_table
+from train import sharding
+from train import trainer_detector as td
+from train.configs.detector import get_config
+from train.eval_detector import DetectorEvaluator
+
+SCENE = ["--meshes", "procedural:24", "--resolution", "160", "128", "--spp", "2",
+         "--max-depth", "3", "--instances", "8", "--distinct", "2", "6", "--val-fraction",
+         "0.25", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def records(tmp_path_factory):
+    root = tmp_path_factory.mktemp("learn")
+    for split, scenes, per_scene in (("train", 10, 4), ("val", 4, 2)):
+        generate.main([*SCENE, "--out", str(root / split), "--split", split,
+                       "--num-scenes", str(scenes), "--images-per-scene", str(per_scene)])
+        pack.main(["--scenes", str(root / split / f"{split}_pbr"), "--out", str(root / "rec"),
+                   "--name", split, "--split-label", split, "--bank-size", "32",
+                   "--num-templates", "128", "--quiet"])
+    return root / "rec"
+
+
+def test_tiny_detector_learns_and_generalises_to_held_out_meshes(records, tmp_path):
+    c = get_config("tiny")
+    c.data_dir = str(records)
+    c.total_steps = 400
+    c.batch_size = 16
+    c.eval.update(every_steps=0, num_examples=96, batch_size=16, num_templates=-1)
+    c.checkpoint.update(every_steps=0, async_save=False)
+    c.mesh.update(data=1, fsdp=1)
+    c.progress_bar = False
+    table = load_object_table(records)
+    held_out = {k for k, v in table.items() if v.split == "val"}
+    assert held_out and held_out.isdisjoint(k for k, v in table.items() if v.split == "train")
+
+    trainer = td.DetectorTrainer(c, tmp_path / "run", devices=jax.devices()[:1])
+    evaluator = DetectorEvaluator(c, trainer.compiled.graphdef, trainer.mesh, trainer.table)
+    before = evaluator(trainer.state["params"])
+    losses = []
+    trainer.run(hooks=[lambda step, batch, m: losses.append(m["loss"])])
+    after = evaluator(trainer.state["params"])
+
+    first, last = np.mean(losses[:25]), np.mean(losses[-25:])
+    assert last < 0.75 * first, (first, last)
+    assert after["eval/ap50"] > before["eval/ap50"] + 0.01, (before, after)
+    assert after["eval/ap50"] > 2 * before["eval/ap50"], (before, after)
