@@ -1,4 +1,4 @@
-"""`python -m infer.evaluate` on a generated BOP dataset: 6D CSV and 2D JSON files."""
+"""`python -m threept_jax.eval` on a generated BOP dataset: 6D CSV and 2D JSON files."""
 
 import json
 import os
@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from threept_jax.data import bop
 from threept_jax.data.bop_synthetic import SyntheticInstance, write_synthetic_dataset
-from infer.evaluate import main
+from threept_jax.eval.__main__ import main
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
 KEYS_6D = {
@@ -128,7 +128,7 @@ def test_cli_module_entry_point_and_errors(dataset, tmp_path):
         [
             sys.executable,
             "-m",
-            "infer.evaluate",
+            "threept_jax.eval",
             "--dataset-dir",
             str(root),
             "--results",

@@ -1,6 +1,6 @@
 """Command line: evaluate a BOP 6D results CSV or 2D results JSON against a BOP dataset.
 
-    python -m infer.evaluate --dataset-dir DIR --split test --results FILE --out scores.json \\
+    python -m threept_jax.eval --dataset-dir DIR --split test --results FILE --out scores.json \\
         [--targets FILE] [--models-subdir models_eval] [--sensor NAME] [--image-width PX]
 
 Writes a JSON with ``ap, ap_mssd, ap_mspd, ap_mm, ar_mssd, ar_mspd, per_object, num_estimates,
@@ -42,7 +42,7 @@ def format_table(scores) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(
-        prog="python -m infer.evaluate", description=__doc__.split("\n")[0]
+        prog="python -m threept_jax.eval", description=__doc__.split("\n")[0]
     )
     ap.add_argument("--dataset-dir", required=True, help="BOP dataset folder (e.g. .../tless)")
     ap.add_argument("--split", default="test", help="split folder name (default: test)")
