@@ -26,23 +26,35 @@ def _steps(ckpt_dir: pathlib.Path) -> list[int]:
                   or p.name.isdigit() and (p / "state").is_dir())
 
 
-def _best_step(workdir: pathlib.Path, steps: list[int]) -> int:
-    """The step with the highest saved best metric (``checkpoint.best_metric`` of the run),
-    else the latest."""
+def _metrics_manager(workdir: pathlib.Path) -> ocp.CheckpointManager | None:
+    """A manager that reads the metrics saved with each step (None: the run tracks none)."""
     config = json.loads((workdir / "config.json").read_text()) if (workdir / "config.json").exists() else {}
-    metric = config.get("checkpoint", {}).get("best_metric")
-    mode = config.get("checkpoint", {}).get("best_mode", "max")
-    best, best_value = steps[-1], None
-    for step in steps:
-        meta = workdir / "checkpoints" / str(step) / "_CHECKPOINT_METADATA"
-        if not (metric and meta.exists()):
-            continue
-        value = (json.loads(meta.read_text()).get("metrics") or {}).get(metric)
-        if value is None:
-            continue
-        if best_value is None or (value > best_value if mode == "max" else value < best_value):
-            best, best_value = step, value
-    return best
+    ckpt = config.get("checkpoint", {})
+    metric = ckpt.get("best_metric")
+    if not metric:
+        return None
+    options = ocp.CheckpointManagerOptions(best_fn=lambda m: float(m[metric]),
+                                           best_mode=ckpt.get("best_mode", "max"))
+    return ocp.CheckpointManager(workdir / "checkpoints", options=options)
+
+
+def saved_metrics(workdir, step: int) -> dict[str, float]:
+    """The evaluation metrics saved with checkpoint ``step`` of a training run ({} if none)."""
+    manager = _metrics_manager(pathlib.Path(workdir))
+    if manager is None:
+        return {}
+    with manager:
+        return dict(manager.metrics(step) or {})
+
+
+def _best_step(workdir: pathlib.Path, steps: list[int]) -> int:
+    """The step with the best saved ``checkpoint.best_metric`` of the run, else the latest."""
+    manager = _metrics_manager(workdir)
+    if manager is None:
+        return steps[-1]
+    with manager:
+        best = manager.best_step()
+    return steps[-1] if best is None or best not in steps else int(best)
 
 
 def load_detector(workdir, step: int | str = "best", dtype: str | None = None

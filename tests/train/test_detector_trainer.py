@@ -181,6 +181,24 @@ def test_kill_and_resume_in_process(toy, tmp_path):
     jax.tree.map(np.testing.assert_array_equal, loaded, _params_np(again))
 
 
+def test_best_checkpoint_survives_a_restart(tmp_path):
+    from infer.checkpoint import _best_step, saved_metrics
+    from train.checkpointing import Checkpointer
+
+    (tmp_path / "config.json").write_text(json.dumps(
+        {"checkpoint": {"best_metric": "eval/ap50", "best_mode": "max"}}))
+    ckpt = Checkpointer(tmp_path, max_to_keep=1, async_save=False)
+    state = {"w": np.zeros(3, np.float32)}
+    for step, ap50 in ((1, 0.2), (2, 0.7), (3, None), (4, 0.4)):
+        ckpt.save(step, state, None, None if ap50 is None else {"eval/ap50": ap50, "eval/ap": 0.1})
+    ckpt.manager.close()
+    # Kept: the latest (4) and the best (2); read back by a fresh process's loader.
+    steps = sorted(int(p.name) for p in (tmp_path / "checkpoints").iterdir() if p.name.isdigit())
+    assert steps == [2, 4]
+    assert _best_step(tmp_path, steps) == 2
+    assert saved_metrics(tmp_path, 2) == {"eval/ap50": 0.7, "eval/ap": 0.1}
+
+
 def test_killed_subprocess_resumes_to_the_same_batch(toy, tmp_path):
     """A real run killed with SIGKILL after its step-2 checkpoint resumes to step 3 exactly."""
     workdir = tmp_path / "killed"
