@@ -40,7 +40,7 @@ def _metrics_manager(workdir: pathlib.Path) -> ocp.CheckpointManager | None:
 
 def saved_metrics(workdir, step: int) -> dict[str, float]:
     """The evaluation metrics saved with checkpoint ``step`` of a training run ({} if none)."""
-    manager = _metrics_manager(pathlib.Path(workdir))
+    manager = _metrics_manager(pathlib.Path(workdir).expanduser().resolve())
     if manager is None:
         return {}
     with manager:
@@ -69,7 +69,7 @@ def load_detector(workdir, step: int | str = "best", dtype: str | None = None
 
     Returns (model, config, step).
     """
-    workdir = pathlib.Path(workdir)
+    workdir = pathlib.Path(workdir).expanduser().resolve()  # Orbax needs absolute paths
     cfg_file = workdir / "detector.json"
     if not cfg_file.exists():
         raise FileNotFoundError(

@@ -149,7 +149,7 @@ def _assert_same_batch(a, b):
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
 
-def test_kill_and_resume_in_process(toy, tmp_path):
+def test_kill_and_resume_in_process(toy, tmp_path, monkeypatch):
     cfg = small_config(toy, **{"eval.every_steps": 3})
     full = {}
     summary = td.train(cfg, tmp_path / "full", hooks=[_record(full)], devices=jax.devices()[:1])
@@ -179,6 +179,9 @@ def test_kill_and_resume_in_process(toy, tmp_path):
     assert step == 3 and model_cfg == td.model_config(cfg)
     loaded = nnx.to_pure_dict(nnx.state(model, nnx.Param))
     jax.tree.map(np.testing.assert_array_equal, loaded, _params_np(again))
+    # A relative workdir works too (Orbax itself refuses relative paths).
+    monkeypatch.chdir(tmp_path)
+    assert load_detector("cut", step="best")[2] == 3
 
 
 def test_best_checkpoint_survives_a_restart(tmp_path):
