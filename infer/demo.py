@@ -1,6 +1,6 @@
 """The main job on built-in defaults: ``python -m infer.demo`` (what ``make demo`` runs).
 
-The whole pipeline on a CPU in about ten minutes, with nothing downloaded:
+The whole pipeline on a CPU in about six minutes (2 cores), with nothing downloaded:
 
 1. **Synthetic data** (``datagen.generate``): procedural CAD meshes in millimetres, split by
    hash into training objects and held-out objects; path-traced scenes of each (Mitsuba).
@@ -16,7 +16,7 @@ The whole pipeline on a CPU in about ten minutes, with nothing downloaded:
 Every stage resumes: run the same command again and finished stages are skipped, a killed
 data generation redoes only its unfinished scene and a killed training restarts from its last
 checkpoint. Outputs go to ``--out`` (default ``runs/demo``). The tiny model is trained for
-minutes on 60 images, so its scores are low but clearly above an untrained model's (README,
+minutes on 80 images, so its scores are low but clearly above an untrained model's (README,
 "Known limits"); the ``small`` and ``paper`` configs are the ones that train real detectors.
 """
 
@@ -68,7 +68,6 @@ def train_config(records: pathlib.Path, steps: int):
     config = get_config("tiny")
     config.data_dir = str(records)
     config.total_steps = steps
-    config.batch_size = 16
     config.eval.update(every_steps=steps, num_examples=128, batch_size=16)
     config.checkpoint.every_steps = max(steps // 4, 1)
     config.log_every = max(steps // 10, 1)
@@ -84,6 +83,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p.add_argument("--val-scenes", type=int, default=6, help="2 images each")
     p.add_argument("--steps", type=int, default=1000, help="training steps (batch 16)")
     args = p.parse_args(argv)
+    for name in ("train_scenes", "val_scenes", "steps"):
+        if getattr(args, name) < 1:
+            p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     out = args.out
     data, records, workdir = out / "data", out / "records", out / "train"
     total = time.perf_counter()

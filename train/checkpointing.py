@@ -36,15 +36,15 @@ class Checkpointer:
         self.directory = pathlib.Path(workdir).resolve() / "checkpoints"
         self.best_metric = best_metric or None
         keep = [policies.LatestN(n=max_to_keep)]
-        if self.best_metric:
-            keep.append(policies.BestN(
-                get_metric_fn=lambda m: float(m[self.best_metric]),
-                reverse=best_mode == "min", n=1, keep_checkpoints_without_metrics=False))
+        metric_fn = (lambda m: float(m[self.best_metric])) if self.best_metric else None
+        if metric_fn:
+            keep.append(policies.BestN(get_metric_fn=metric_fn, reverse=best_mode == "min", n=1,
+                                       keep_checkpoints_without_metrics=False))
         # best_fn also makes Orbax store each step's metrics with it (``metrics`` item), so the
         # best checkpoint is still known after a restart and to inference (infer.checkpoint).
         options = ocp.CheckpointManagerOptions(
             preservation_policy=policies.AnyPreservationPolicy(keep),
-            best_fn=(lambda m: float(m[self.best_metric])) if self.best_metric else None,
+            best_fn=metric_fn,
             best_mode=best_mode,
             enable_async_checkpointing=async_save,
             create=True,

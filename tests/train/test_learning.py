@@ -10,11 +10,9 @@ The run is deterministic on a given machine. Takes about three minutes on two co
 import jax
 import numpy as np
 import pytest
-from flax import nnx
 
 from datagen import generate, pack
 from threept_jax.data.banks import load_object_table
-from train import sharding
 from train import trainer_detector as td
 from train.configs.detector import get_config
 from train.eval_detector import DetectorEvaluator
