@@ -39,6 +39,7 @@ import collections
 import concurrent.futures
 import dataclasses
 import hashlib
+import itertools
 import json
 import multiprocessing
 import os
@@ -52,6 +53,7 @@ import numpy as np
 # module, and need neither JAX nor Mitsuba (datagen.scene and datagen.banks are imported where
 # used).
 from threept_jax.data import bop, records
+from threept_jax.data.files import atomic_path, atomic_write_bytes
 from threept_jax.data.banks import BANK_SIZE, BANK_TEMPLATES
 
 SHARD_PATTERN = "shard-{:05d}-of-{:05d}.array_record"
@@ -159,7 +161,7 @@ def _write_table(out: pathlib.Path, table: dict[int, dict[str, Any]]) -> None:
     """``objects.json`` (``threept_jax.data.banks.load_object_table`` format, plus ``mesh``,
     ``mesh_sha256``, ``source`` and ``source_obj_id``), keys in numeric order."""
     rows = {str(k): table[k] for k in sorted(table)}
-    bop.atomic_write_bytes(out / TABLE, (json.dumps(rows, indent=1, sort_keys=True) + "\n")
+    atomic_write_bytes(out / TABLE, (json.dumps(rows, indent=1, sort_keys=True) + "\n")
                             .encode())
 
 
@@ -355,39 +357,26 @@ def pack(
     for old in folder.glob("shard-*-of-*.array_record"):
         if old.name not in keep:  # shards of an earlier packing with another shard count
             old.unlink()
-    shard, written, writer, tmp = -1, 0, None, None
     sizes = [0] * num_shards
-
-    def open_next():
-        nonlocal shard, writer, tmp
-        if writer is not None:
-            writer.close()
-            os.replace(tmp, paths[shard])
-        shard += 1
-        tmp = paths[shard].with_name(paths[shard].name + ".tmp")
-        writer = ArrayRecordWriter(str(tmp), "group_size:1")
-
     # Spawned, not forked: the parent may hold JAX / Mitsuba threads.
     pool = (concurrent.futures.ProcessPoolExecutor(
         workers, mp_context=multiprocessing.get_context("spawn")) if workers > 1 else None)
     try:
         results = (pool.map(_encode_task, _tasks(sources, maps, image_format), chunksize=1)
                    if pool else map(_encode_task, _tasks(sources, maps, image_format)))
-        open_next()
+        stream = (rec for block in results for rec in block)
         with tqdm(total=total, unit="img", desc=f"pack {name}", disable=quiet,
                   dynamic_ncols=True) as bar:
-            for block in results:
-                for rec in block:
-                    while written >= bounds[shard + 1]:
-                        open_next()
-                    writer.write(rec)
-                    sizes[shard] += 1
-                    written += 1
-                    bar.update(1)
-        while shard < num_shards - 1:  # fewer images than shards: empty shards
-            open_next()
-        writer.close()
-        os.replace(tmp, paths[shard])
+            for shard, path in enumerate(paths):  # fewer images than shards: empty shards
+                with atomic_path(path) as tmp:
+                    writer = ArrayRecordWriter(str(tmp), "group_size:1")
+                    try:
+                        for rec in itertools.islice(stream, bounds[shard + 1] - bounds[shard]):
+                            writer.write(rec)
+                            sizes[shard] += 1
+                            bar.update(1)
+                    finally:
+                        writer.close()
     finally:
         if pool is not None:
             pool.shutdown()
@@ -400,7 +389,7 @@ def pack(
                     for s, n, m in zip(sources, counts, maps)],
         "image_format": image_format,
     }
-    bop.atomic_write_bytes(folder / "index.json",
+    atomic_write_bytes(folder / "index.json",
                             (json.dumps(index, indent=1, sort_keys=True) + "\n").encode())
     if banks:
         from datagen import banks as DB

@@ -58,7 +58,8 @@ from datagen import cameras as cams
 from datagen import layouts as L
 from datagen import materials as Mt
 from datagen.meshes import LoadedMesh, MeshPool, MeshSkippedWarning
-from threept_jax.data.bop import BopSceneWriter, Camera, GtInstance, atomic_write_bytes
+from threept_jax.data.bop import BopSceneWriter, Camera, GtInstance
+from threept_jax.data.files import atomic_write_bytes
 from threept_jax.render.mesh import Mesh, load_mesh
 from threept_jax.render.mitsuba_backend import Material, MitsubaRenderer, MitsubaScene
 

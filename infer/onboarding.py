@@ -24,7 +24,8 @@ from flax import nnx
 from tqdm import tqdm
 
 from threept_jax.data.banks import BANK_SIZE, BANK_TEMPLATES
-from threept_jax.data.bop import ContinuousSymmetry, Symmetries, atomic_write_bytes
+from threept_jax.data.bop import ContinuousSymmetry, Symmetries
+from threept_jax.data.files import atomic_savez
 from threept_jax.data.pipeline import resize_renders
 from threept_jax.models.configs import DetectorConfig
 from threept_jax.models.detector import Detector
@@ -87,12 +88,6 @@ def _points(mesh: Mesh, n: int = NUM_POINTS) -> np.ndarray:
     return v[idx]
 
 
-def _atomic_savez(path: pathlib.Path, **arrays) -> None:
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    atomic_write_bytes(path, buf.getvalue())
-
-
 class Onboarder:
     """Embeds objects with one detector (``model`` from ``infer.checkpoint.load_detector``)."""
 
@@ -150,7 +145,7 @@ class Onboarder:
             prior, bank = np.asarray(prior), np.asarray(bank)
             rotations, symmetries, center = rb.template_rotations, rb.symmetries, rb.center
             if cache is not None:
-                _atomic_savez(cache, prior_tokens=prior, template_bank=bank,
+                atomic_savez(cache, prior_tokens=prior, template_bank=bank,
                               template_rotations=rotations, symmetries=symmetries, center=center)
         render_mesh = model if model.num_faces <= RENDER_FACES else prepare_mesh(
             model, max_faces=RENDER_FACES)

@@ -45,6 +45,7 @@ import optax
 from flax import nnx
 from jax.sharding import PartitionSpec as P
 
+from threept_jax.data.files import atomic_write_bytes, atomic_write_json
 from threept_jax.data.banks import BankFile, ObjectEntry, load_object_table
 from threept_jax.data.pipeline import (
     ExampleConfig,
@@ -244,12 +245,9 @@ def write_run_files(workdir: pathlib.Path, config: ml_collections.ConfigDict,
                     model_cfg: DetectorConfig) -> None:
     """``config.json`` (the whole run config) and ``detector.json`` (the model config that
     inference rebuilds the detector from: ``infer.checkpoint.load_detector``)."""
-    workdir.mkdir(parents=True, exist_ok=True)
-    for name, text in (("config.json", config.to_json_best_effort(indent=2, sort_keys=True)),
-                       ("detector.json", json.dumps(model_cfg.to_dict(), indent=2, sort_keys=True))):
-        tmp = workdir / (name + ".tmp")
-        tmp.write_text(text)
-        tmp.replace(workdir / name)
+    atomic_write_bytes(workdir / "config.json",
+                       config.to_json_best_effort(indent=2, sort_keys=True).encode())
+    atomic_write_json(workdir / "detector.json", model_cfg.to_dict(), indent=2, sort_keys=True)
 
 
 def check_finite(step: int, metrics: Mapping[str, float]) -> None:

@@ -70,6 +70,7 @@ import cv2
 import numpy as np
 
 from threept_jax.data.bop import ContinuousSymmetry, Symmetries
+from threept_jax.data.files import atomic_write_bytes, atomic_write_json
 from threept_jax.data.records import NPY_HEADER_LOCK
 from threept_jax.eval.symmetry import symmetry_transforms
 from threept_jax.geometry.camera import ray_rotation
@@ -297,16 +298,7 @@ def save_bank(path, bank: RenderBank, image_format: str = "png") -> None:
         template_data=tmpl_data,
         template_offsets=tmpl_offsets,
     )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(buf.getvalue())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def _npz_member_memmap(path: pathlib.Path, name: str) -> np.ndarray:
@@ -505,14 +497,4 @@ def write_object_table(records_dir, entries) -> None:
             row["symmetries_continuous"] = [{"axis": s.axis.tolist(), "offset": s.offset.tolist()}
                                             for s in e.symmetries.continuous]
         out[str(int(e.obj_id))] = row
-    path = records_dir / "objects.json"
-    records_dir.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".objects.json.", suffix=".tmp", dir=records_dir)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(out, f, indent=1)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_json(records_dir / "objects.json", out, indent=1)

@@ -46,6 +46,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from threept_jax.data.files import atomic_write_bytes
+
 from threept_jax.data.ply import load_ply_vertices
 
 __all__ = [
@@ -378,21 +380,6 @@ def _json_dumps_bop(content) -> str:
     else:
         buf.write(json.dumps(content, sort_keys=True))
     return buf.getvalue()
-
-
-def atomic_write_bytes(path: pathlib.Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file and a rename: a killed writer
-    leaves the old file or none, never a torn one. Creates the parent folder."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def write_json_atomic(path, content) -> None:
