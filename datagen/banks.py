@@ -25,20 +25,13 @@ from collections.abc import Sequence
 import numpy as np
 
 from threept_jax.data import banks as B
-from threept_jax.data.bop import ContinuousSymmetry, Symmetries
+from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
 from threept_jax.pipeline.onboarding import render_bank
 
 
 
 class TableError(ValueError):
     """The object table cannot be used for rendering banks (the message names the fix)."""
-
-
-def _symmetries(row: dict) -> Symmetries:
-    disc = np.asarray(row.get("symmetries_discrete", []), np.float64).reshape(-1, 4, 4)
-    cont = [ContinuousSymmetry(s["axis"], s.get("offset", [0.0, 0.0, 0.0]))
-            for s in row.get("symmetries_continuous", [])]
-    return Symmetries(disc, cont)
 
 
 def bank_is_current(path: pathlib.Path, size: int, num_templates: int) -> bool:
@@ -94,9 +87,10 @@ def build_banks(
     with tqdm(total=views, unit="view", desc="render banks", disable=quiet or not todo,
               dynamic_ncols=True) as bar:
         for oid, row, bank in todo:
-            rb = render_bank(records_dir / row["mesh"], oid, float(row["diameter"]),
-                             _symmetries(row), size, num_templates, max_faces=max_faces,
-                             backend=backend, on_views=bar.update)
+            symmetries = Symmetries.from_json(row, f"{table_path} object {oid}")
+            rb = render_bank(records_dir / row["mesh"], oid, float(row["diameter"]), symmetries,
+                             size, num_templates, max_faces=max_faces, backend=backend,
+                             on_views=bar.update)
             B.save_bank(bank, rb, image_format=image_format)
     return [t[0] for t in todo]
 

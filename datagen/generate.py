@@ -53,6 +53,7 @@ from datagen import meshes as M
 from datagen import procedural as P
 from datagen import scene as S
 from threept_jax.data import bop
+from threept_jax.geometry.symmetry import Symmetries
 
 GENERATOR = "threept_jax.datagen"
 GENERATOR_VERSION = "1.0"
@@ -157,13 +158,7 @@ def update_models_info(models_dir: pathlib.Path, pool: M.MeshPool) -> int:
         if oid in existing:
             continue
         rec = by_id.get(oid)
-        sym = bop.Symmetries()
-        if rec is not None:
-            sym = bop.Symmetries(
-                np.asarray(rec.symmetries_discrete, np.float64).reshape(-1, 4, 4),
-                [bop.ContinuousSymmetry(s["axis"], s["offset"])
-                 for s in rec.symmetries_continuous],
-            )
+        sym = rec.symmetries if rec is not None else Symmetries()
         from threept_jax.data.ply import load_ply_vertices
 
         existing[oid] = bop.compute_model_info(load_ply_vertices(ply), sym, oid, ply)

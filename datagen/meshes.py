@@ -37,6 +37,7 @@ import numpy as np
 import trimesh
 
 from datagen.procedural import Part, mesh_diameter
+from threept_jax.geometry.symmetry import Symmetries
 
 MESH_EXTENSIONS = (".ply", ".obj", ".glb", ".gltf", ".stl", ".off")
 UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
@@ -73,8 +74,7 @@ class MeshRecord:
       path: the file, or None for an in-memory mesh.
       mesh: the in-memory mesh (mm), or None for a file.
       diameter: mm, from ``models_info.json`` or the procedural part; None until loaded.
-      symmetries_discrete: BOP flattened 4x4 transforms (translation in mm).
-      symmetries_continuous: BOP {"axis": [3], "offset": [3]} dicts.
+      symmetries: the object's symmetries (mm).
       source: the folder or "procedural".
       source_obj_id: the id in the source BOP dataset, else None.
       scale: factor from file units to mm.
@@ -86,8 +86,7 @@ class MeshRecord:
     path: pathlib.Path | None
     mesh: trimesh.Trimesh | None
     diameter: float | None
-    symmetries_discrete: tuple[tuple[float, ...], ...] = ()
-    symmetries_continuous: tuple[dict[str, list[float]], ...] = ()
+    symmetries: Symmetries = dataclasses.field(default_factory=Symmetries)
     source: str = ""
     source_obj_id: int | None = None
     scale: float = 1.0
@@ -114,10 +113,7 @@ class LoadedMesh:
             info[f"min_{axis}"] = float(lo[k])
             info[f"max_{axis}"] = float(hi[k])
             info[f"size_{axis}"] = float(hi[k] - lo[k])
-        if self.record.symmetries_discrete:
-            info["symmetries_discrete"] = [list(s) for s in self.record.symmetries_discrete]
-        if self.record.symmetries_continuous:
-            info["symmetries_continuous"] = [dict(s) for s in self.record.symmetries_continuous]
+        info.update(self.record.symmetries.to_json())
         return info
 
 
@@ -200,19 +196,7 @@ def _scan_folder(folder: MeshFolder) -> list[dict[str, Any]]:
                     path=files[oid],
                     mesh=None,
                     diameter=float(diameter) * scale if diameter is not None else None,
-                    symmetries_discrete=tuple(
-                        tuple(
-                            float(x) * (scale if k in (3, 7, 11) else 1.0) for k, x in enumerate(s)
-                        )
-                        for s in meta.get("symmetries_discrete", [])
-                    ),
-                    symmetries_continuous=tuple(
-                        {
-                            "axis": [float(x) for x in s["axis"]],
-                            "offset": [float(x) * scale for x in s.get("offset", [0, 0, 0])],
-                        }
-                        for s in meta.get("symmetries_continuous", [])
-                    ),
+                    symmetries=Symmetries.from_json(meta, f"{root} obj {oid}").scaled(scale),
                     source=str(root),
                     source_obj_id=oid,
                     scale=scale,
@@ -370,15 +354,13 @@ def build_pool(
     for part in parts:
         k = counts[part.family]
         counts[part.family] += 1
-        sym = part.bop_symmetries()
         entries.append(
             dict(
                 name=f"procedural/{part.family}_{k:04d}",
                 path=None,
                 mesh=part.mesh,
                 diameter=part.diameter,
-                symmetries_discrete=tuple(tuple(s) for s in sym.get("symmetries_discrete", [])),
-                symmetries_continuous=tuple(sym.get("symmetries_continuous", [])),
+                symmetries=part.symmetries,
                 source="procedural",
             )
         )

@@ -38,6 +38,8 @@ import trimesh
 from scipy.spatial import ConvexHull
 from scipy.spatial.distance import pdist
 
+from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
+
 DIAMETER_RANGE_MM = (20.0, 250.0)
 DEFAULT_MAX_FACES = 5000
 
@@ -53,34 +55,17 @@ class Part:
       mesh: watertight ``trimesh.Trimesh`` in mm, centred at its bounding-box centre.
       family: the family name (one of ``FAMILIES``).
       params: the sampled dimensions (mm) and options, for provenance.
-      symmetries_discrete: [S, 4, 4] proper rigid transforms (mm) mapping the mesh onto itself,
-        identity excluded (BOP ``symmetries_discrete``).
-      symmetries_continuous: tuple of (axis [3], offset [3] mm) pairs (BOP
-        ``symmetries_continuous``): the mesh is invariant to any rotation about the line through
-        ``offset`` along ``axis``.
+      symmetries: discrete ones are proper rigid transforms (mm) mapping the mesh onto itself,
+        identity excluded; a continuous one leaves the mesh invariant to any rotation about the
+        line through its ``offset`` along its ``axis``.
       diameter: largest distance between two vertices, mm.
     """
 
     mesh: trimesh.Trimesh
     family: str
     params: dict[str, Any]
-    symmetries_discrete: np.ndarray
-    symmetries_continuous: tuple[tuple[np.ndarray, np.ndarray], ...]
+    symmetries: Symmetries
     diameter: float
-
-    def bop_symmetries(self) -> dict[str, list]:
-        """The symmetries as BOP ``models_info.json`` entries (keys present only when non-empty)."""
-        out: dict[str, list] = {}
-        if len(self.symmetries_discrete):
-            out["symmetries_discrete"] = [
-                [float(x) for x in S.reshape(-1)] for S in self.symmetries_discrete
-            ]
-        if self.symmetries_continuous:
-            out["symmetries_continuous"] = [
-                {"axis": [float(x) for x in a], "offset": [float(x) for x in o]}
-                for a, o in self.symmetries_continuous
-            ]
-        return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -675,8 +660,7 @@ def generate_part(
         mesh=mesh,
         family=family,
         params=params,
-        symmetries_discrete=S,
-        symmetries_continuous=tuple(cont),
+        symmetries=Symmetries(S, [ContinuousSymmetry(a, o) for a, o in cont]),
         diameter=mesh_diameter(mesh.vertices),
     )
 

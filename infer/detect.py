@@ -20,6 +20,7 @@ import numpy as np
 from flax import nnx
 
 from threept_jax.geometry.boxes import nms
+from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.models.configs import DetectorConfig
 from threept_jax.models.detector import Detector, orientation_scores, patch_scores
 from threept_jax.pipeline import pan_and_scan as pns
@@ -52,25 +53,6 @@ class Detection:
     def pose(self) -> np.ndarray:
         """The best hypothesis T_cam_obj [4, 4]."""
         return self.poses[0]
-
-
-def check_intrinsics(K, image_hw: tuple[int, int]) -> np.ndarray:
-    """K as float32 [3, 3], or a ValueError that names what is wrong with it."""
-    K = np.asarray(K, np.float64)
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-        raise ValueError(f"K must be a finite 3x3 matrix, got shape {K.shape}")
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or np.any(K[1:, 0] != 0) or K[2, 1] != 0 or K[2, 2] != 1:
-        raise ValueError(f"K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}")
-    h, w = image_hw
-    if min(K[0, 0], K[1, 1]) < 0.05 * max(h, w):
-        raise ValueError(
-            f"focal lengths ({K[0, 0]:.3g}, {K[1, 1]:.3g}) px are implausibly small for a {w}x{h} "
-            "image: K must be in pixels, not normalised by the image size")
-    if not (-0.5 * w <= K[0, 2] <= 1.5 * w and -0.5 * h <= K[1, 2] <= 1.5 * h):
-        raise ValueError(
-            f"principal point ({K[0, 2]:.1f}, {K[1, 2]:.1f}) is far outside the {w}x{h} image: is "
-            "K for this image size (after any resizing or cropping)?")
-    return K.astype(np.float32)
 
 
 class SceneDetector:
@@ -154,7 +136,7 @@ class SceneDetector:
             raise ValueError(f"image must be uint8 RGB, got {image.dtype} (convert with "
                              "(x * 255).round().astype(np.uint8) for float images in [0, 1])")
         hw = image.shape[:2]
-        K = check_intrinsics(K, hw)
+        K = validate_intrinsics(K, "K", image_hw=hw).astype(np.float32)
         out = self._compiled(hw)(self._params, image, K, self._prior, self._bank, self._points,
                                  self._rotations)
         out = jax.tree.map(np.asarray, out)

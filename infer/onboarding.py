@@ -24,7 +24,7 @@ from flax import nnx
 from tqdm import tqdm
 
 from threept_jax.data.banks import BANK_SIZE, BANK_TEMPLATES
-from threept_jax.data.bop import ContinuousSymmetry, Symmetries
+from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
 from threept_jax.data.files import atomic_savez
 from threept_jax.data.pipeline import resize_renders
 from threept_jax.models.configs import DetectorConfig
@@ -67,14 +67,6 @@ class OnboardedObject:
     template_rotations: np.ndarray
     symmetries: np.ndarray
     center: np.ndarray
-
-
-def _mesh_symmetries(mesh: Mesh) -> Symmetries:
-    disc = (np.zeros((0, 4, 4)) if mesh.symmetries_discrete is None
-            else np.asarray(mesh.symmetries_discrete, np.float64))
-    cont = [ContinuousSymmetry(np.asarray(a, np.float64), np.asarray(o, np.float64))
-            for a, o in mesh.symmetries_continuous]
-    return Symmetries(disc, cont)
 
 
 def _points(mesh: Mesh, n: int = NUM_POINTS) -> np.ndarray:
@@ -127,7 +119,7 @@ class Onboarder:
             model = load_mesh(path, units=units)
             content = path.read_bytes() + units.encode()
         cache = None if self.cache_dir is None else self.cache_dir / f"{self._key(content)}.npz"
-        sym = _mesh_symmetries(model)
+        sym = model.symmetries
         if cache is not None and cache.exists():
             with np.load(cache, allow_pickle=False) as z:
                 prior, bank, rotations, symmetries, center = (

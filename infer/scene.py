@@ -28,6 +28,7 @@ from threept_jax.geometry.camera import invert, ray_rotation
 from threept_jax.geometry.so3_kde import (kappa_from_std_deg, kde_mean_shift, top_k_separated,
                                           vmf_kde)
 from threept_jax.geometry.triangulation import match_across_views
+from threept_jax.geometry.validate import validate_rigid
 
 from infer.detect import Detection, SceneDetector
 from infer.visualize import PoseRenderer, detection_masks
@@ -69,11 +70,7 @@ def _check_views(images, Ks, T_cam_world):
     T = np.asarray(T_cam_world, np.float32)
     if T.shape != (V, 4, 4):
         raise ValueError(f"T_cam_world must be [V={V}, 4, 4], got {T.shape}")
-    R = T[:, :3, :3].astype(np.float64)
-    if not np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-3) or np.any(
-            np.abs(np.linalg.det(R) - 1) > 1e-3):
-        raise ValueError("T_cam_world rotations are not orthonormal: pass world -> camera "
-                         "rigid transforms (OpenCV axes, millimetres)")
+    validate_rigid(T, "T_cam_world (world -> camera, OpenCV axes, mm)")
     return T
 
 

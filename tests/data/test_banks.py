@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from threept_jax.data import banks
-from threept_jax.data.bop import ContinuousSymmetry, Symmetries
+from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
 from threept_jax.geometry.grids import prior_view_rotations, super_fibonacci_rotations
 
 

@@ -295,7 +295,7 @@ def test_validation_errors(tmp_path, mini):
         bop.Camera(K.T)
     with pytest.raises(ValueError, match="focal lengths must be positive"):
         bop.Camera(np.diag([-1.0, 1.0, 1.0]))
-    with pytest.raises(ValueError, match="9 entries"):
+    with pytest.raises(ValueError, match="9 values"):
         bop.validate_intrinsics([1, 2, 3])
     with pytest.raises(FileNotFoundError, match="does not exist"):
         bop.BopDataset(tmp_path / "nope")

@@ -109,9 +109,9 @@ def test_bop_folder_keeps_ids_diameters_and_symmetries(bop_models_dir):
         assert r.diameter == pytest.approx(info[r.source_obj_id]["diameter"])
         expected = np.array(info[r.source_obj_id].get("symmetries_discrete", []), np.float64)
         np.testing.assert_array_equal(
-            np.array(r.symmetries_discrete).reshape(expected.shape), expected
+            np.array(r.symmetries.discrete).reshape(expected.shape), expected
         )
-        assert len(r.symmetries_continuous) == len(
+        assert len(r.symmetries.continuous) == len(
             info[r.source_obj_id].get("symmetries_continuous", [])
         )
     # The smallest file: the loaded mesh agrees with models_info and with brute force.
@@ -136,7 +136,8 @@ def test_continuous_symmetries_and_folder_order(bop_models_dir):
     info = json.loads((tless / "models_info.json").read_text())
     rec = pool.records[0]
     cont = info[str(rec.source_obj_id)].get("symmetries_continuous", [])
-    assert [dict(c) for c in rec.symmetries_continuous] == [
+    assert [{"axis": c.axis.tolist(), "offset": c.offset.tolist()}
+            for c in rec.symmetries.continuous] == [
         {"axis": [float(x) for x in c["axis"]], "offset": [float(x) for x in c["offset"]]}
         for c in cont
     ]
@@ -154,7 +155,7 @@ def test_procedural_parts_join_the_pool_after_folders(plain_tree):
         assert loaded.mesh is part.mesh
         assert loaded.diameter == pytest.approx(part.diameter)
         info = loaded.models_info()
-        assert info["symmetries_discrete"] == part.bop_symmetries()["symmetries_discrete"]
+        assert info["symmetries_discrete"] == part.symmetries.to_json()["symmetries_discrete"]
 
 
 def test_sample_draws_distinct_usable_meshes_deterministically(plain_tree):

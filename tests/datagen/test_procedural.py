@@ -93,10 +93,11 @@ def test_parts_are_centred_watertight_metric_solids(parts, family):
 def test_declared_symmetries_map_the_part_onto_itself(parts, family):
     for seed in SEEDS:
         part = parts[(family, seed)]
-        transforms = list(part.symmetries_discrete)
+        transforms = list(part.symmetries.discrete)
         if len(transforms) > 6:  # gears have up to 95: check an evenly spread subset
             transforms = [transforms[i] for i in np.linspace(0, len(transforms) - 1, 6).astype(int)]
-        for axis, offset in part.symmetries_continuous:
+        for c in part.symmetries.continuous:
+            axis, offset = c.axis, c.offset
             transforms += [_rot(axis, a, offset) for a in (0.7, 2.1, math.pi)]
         for S in transforms:
             R = S[:3, :3]
@@ -121,36 +122,36 @@ def test_symmetry_counts_follow_the_construction(parts):
     for seed in SEEDS:
         # Hex nut: 6-fold axis, plus 6 half turns when both faces are chamfered alike.
         nut = parts[("nut", seed)]
-        assert len(nut.symmetries_discrete) == (11 if nut.params["chamfer_both"] else 5)
-        assert not nut.symmetries_continuous
+        assert len(nut.symmetries.discrete) == (11 if nut.params["chamfer_both"] else 5)
+        assert not nut.symmetries.continuous
         # Hex (or hex-socket) bolt: the 6-fold axis only, head on one end.
-        assert len(parts[("bolt", seed)].symmetries_discrete) == 5
+        assert len(parts[("bolt", seed)].symmetries.discrete) == 5
         # Washer: any rotation about its axis and a half turn that flips it.
         washer = parts[("washer", seed)]
-        assert len(washer.symmetries_discrete) == 1 and len(washer.symmetries_continuous) == 1
-        np.testing.assert_allclose(np.abs(washer.symmetries_continuous[0][0]), [0, 0, 1])
+        assert len(washer.symmetries.discrete) == 1 and len(washer.symmetries.continuous) == 1
+        np.testing.assert_allclose(np.abs(washer.symmetries.continuous[0].axis), [0, 0, 1])
         # Spur gear with n teeth: n-fold axis unless keyed; n half turns unless it has a hub
         # (one, through the keyway, if keyed).
         gear = parts[("gear", seed)]
         n, key, hub = gear.params["teeth"], gear.params["keyway"], gear.params["hub"]
         expected = (0 if key else n - 1) + (0 if hub else (1 if key else n))
-        assert len(gear.symmetries_discrete) == expected
+        assert len(gear.symmetries.discrete) == expected
         # Bracket with unequal legs: none.
-        assert len(parts[("bracket", seed)].symmetries_discrete) == 0
+        assert len(parts[("bracket", seed)].symmetries.discrete) == 0
         # Plate: the rectangle's three half turns, none with the locating hole.
         plate = parts[("plate", seed)]
-        assert len(plate.symmetries_discrete) == (0 if plate.params["locating_hole"] else 3)
+        assert len(plate.symmetries.discrete) == (0 if plate.params["locating_hole"] else 3)
 
 
 def test_bop_symmetry_format_round_trips_through_json(parts):
     part = parts[("washer", 0)]
-    info = json.loads(json.dumps(part.bop_symmetries()))
+    info = json.loads(json.dumps(part.symmetries.to_json()))
     assert len(info["symmetries_discrete"][0]) == 16
     S = np.array(info["symmetries_discrete"][0]).reshape(4, 4)
-    np.testing.assert_allclose(S, part.symmetries_discrete[0])
+    np.testing.assert_allclose(S, part.symmetries.discrete[0])
     np.testing.assert_allclose(S[3], [0, 0, 0, 1])
     assert set(info["symmetries_continuous"][0]) == {"axis", "offset"}
-    assert "symmetries_discrete" not in parts[("bracket", 0)].bop_symmetries()
+    assert "symmetries_discrete" not in parts[("bracket", 0)].symmetries.to_json()
 
 
 def test_same_seed_same_part_different_seed_different_part():
@@ -160,7 +161,7 @@ def test_same_seed_same_part_different_seed_different_part():
         c = P.generate_part(np.random.default_rng(8), fam)
         assert a.mesh.vertices.tobytes() == b.mesh.vertices.tobytes()
         assert a.mesh.faces.tobytes() == b.mesh.faces.tobytes()
-        assert a.symmetries_discrete.tobytes() == b.symmetries_discrete.tobytes()
+        assert a.symmetries.discrete.tobytes() == b.symmetries.discrete.tobytes()
         assert a.params == b.params
         assert a.params != c.params
     fams_a = [p.family for p in P.generate_parts(np.random.default_rng(3), 12)]
@@ -173,7 +174,7 @@ def test_small_face_budget_is_met_with_valid_symmetric_solids():
         part = P.generate_part(rng, fam, max_faces=600)
         assert len(part.mesh.faces) <= 600
         assert part.mesh.is_watertight and part.mesh.is_winding_consistent and part.mesh.volume > 0
-        for S in part.symmetries_discrete[:2]:
+        for S in part.symmetries.discrete[:2]:
             assert _volume_iou(part.mesh, S) > 0.99
 
 
@@ -183,7 +184,7 @@ def test_diameter_range_is_enforced_by_uniform_scaling():
         part = P.generate_part(rng, fam, diameter_range=(20.0, 40.0))
         d = pdist(np.asarray(part.mesh.vertices)).max()
         assert 20.0 - 1e-6 <= d <= 40.0 + 1e-6
-        for S in part.symmetries_discrete[:2]:
+        for S in part.symmetries.discrete[:2]:
             assert _volume_iou(part.mesh, S) > 0.99
 
 

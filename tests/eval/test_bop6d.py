@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from threept_jax.data import bop
 from threept_jax.data.bop_synthetic import SyntheticInstance, write_synthetic_dataset
+from threept_jax.geometry.symmetry import Symmetries
 from threept_jax.eval.bop6d import ImageGt, average_precision_101, evaluate_poses
 from threept_jax.eval.bop_eval import evaluate_pose_results
 from threept_jax.eval.pose_error import prepare_model
@@ -91,7 +92,7 @@ def test_tless_symmetric_pose_scores_as_identity(tless):
         # Without the symmetry this pose is far off: the set must have been used.
         plain = {
             27: prepare_model(
-                points=model.vertices(), symmetries=bop.Symmetries(), diameter=model.diameter
+                points=model.vertices(), symmetries=Symmetries(), diameter=model.diameter
             )
         }
         assert _run(plain, [(27, T)], [_est(Te, 0.8, obj=27)]).ap_mssd == 0.0

@@ -7,7 +7,8 @@ import pytest
 import trimesh
 from flax import nnx
 
-from infer.detect import SceneDetector, check_intrinsics
+from infer.detect import SceneDetector
+from threept_jax.geometry.validate import validate_intrinsics
 from infer.onboarding import Onboarder
 from infer.scene import run_scene
 from threept_jax.models.configs import DetectorConfig
@@ -94,12 +95,12 @@ def test_bad_inputs_name_the_problem(pipeline):
     image = np.zeros((64, 64, 3), np.uint8)
     with pytest.raises(ValueError, match="uint8"):
         det.detect(image.astype(np.float32), np.eye(3))
-    with pytest.raises(ValueError, match="fx, fy > 0"):
-        check_intrinsics(np.diag([-1.0, 1.0, 1.0]), (64, 64))
+    with pytest.raises(ValueError, match="focal lengths must be positive"):
+        validate_intrinsics(np.diag([-1.0, 1.0, 1.0]), image_hw=(64, 64))
     with pytest.raises(ValueError, match="normalised"):
-        check_intrinsics(np.array([[0.9, 0, 0.5], [0, 0.9, 0.5], [0, 0, 1]]), (64, 64))
+        validate_intrinsics(np.array([[0.9, 0, 0.5], [0, 0.9, 0.5], [0, 0, 1]]), image_hw=(64, 64))
     with pytest.raises(ValueError, match="image size"):
-        check_intrinsics(np.array([[90.0, 0, 640], [0, 90, 480], [0, 0, 1]]), (64, 64))
+        validate_intrinsics(np.array([[90.0, 0, 640], [0, 90, 480], [0, 0, 1]]), image_hw=(64, 64))
     with pytest.raises(ValueError, match="T_cam_world"):
         run_scene(det, [image, image], [np.eye(3), np.eye(3)])
     with pytest.raises(ValueError, match="no objects"):

@@ -301,5 +301,5 @@ def test_bad_inputs_raise():
         render(mesh, singular, K, SYNTH_HW)
     with pytest.raises(ValueError, match="unknown outputs"):
         render(mesh, T, K, SYNTH_HW, outputs=("depth", "albedo"))
-    with pytest.raises(ValueError, match="upper triangular"):
+    with pytest.raises(ValueError, match="upper-triangular"):
         check_pose_and_intrinsics(T, K.T)

@@ -99,9 +99,9 @@ def test_bop_mesh_colours_texture_and_models_info(bop_models_dir):
     assert 0 <= banana.uv.min() and banana.uv.max() <= 1
     info = json.loads((bop_models_dir / "tless" / "models" / "models_info.json").read_text())["4"]
     np.testing.assert_allclose(tless.diameter, info["diameter"], rtol=2e-3)
-    assert len(tless.symmetries_continuous) == len(info.get("symmetries_continuous", []))
+    assert len(tless.symmetries.continuous) == len(info.get("symmetries_continuous", []))
     np.testing.assert_allclose(
-        tless.symmetries_discrete,
+        tless.symmetries.discrete,
         np.asarray(info.get("symmetries_discrete", []), np.float32).reshape(-1, 4, 4))
     # Unit vertex normals even where the file stores unnormalised ones (YCB-V obj 10).
     np.testing.assert_allclose(np.linalg.norm(banana.normals, axis=1), 1, atol=1e-5)

@@ -69,10 +69,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from threept_jax.data.bop import ContinuousSymmetry, Symmetries
+from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
 from threept_jax.data.files import atomic_write_bytes, atomic_write_json
 from threept_jax.data.records import NPY_HEADER_LOCK
-from threept_jax.eval.symmetry import symmetry_transforms
+from threept_jax.geometry.symmetry import symmetry_transforms
 from threept_jax.geometry.camera import ray_rotation
 
 BANK_FORMAT_VERSION = 1
@@ -441,21 +441,12 @@ def _parse_entry(obj_id: int, raw: Any, path: pathlib.Path) -> ObjectEntry:
     if not diameter >= 1.0:
         raise ValueError(f"{where}: diameter {diameter} looks like metres; the object table is "
                          "in millimetres")
-    disc = np.asarray(raw.get("symmetries_discrete", []), np.float64)
-    if disc.size and (disc.ndim != 2 or disc.shape[1] != 16):
-        raise ValueError(f"{where}: symmetries_discrete must be a list of 16-value 4x4 matrices")
-    cont = []
-    for i, s in enumerate(raw.get("symmetries_continuous", [])):
-        axis = np.asarray(s.get("axis", []), np.float64)
-        if axis.shape != (3,) or not np.linalg.norm(axis) > 0:
-            raise ValueError(f"{where}: symmetries_continuous[{i}] needs a non-zero 3-vector axis")
-        cont.append(ContinuousSymmetry(axis, s.get("offset", [0.0, 0.0, 0.0])))
     split = raw.get("split")
     if split is not None and not isinstance(split, str):
         raise ValueError(f"{where}: split must be a string such as 'train' or 'val'")
     return ObjectEntry(
         obj_id=obj_id, name=str(raw.get("name", f"obj_{obj_id:06d}")), diameter=diameter,
-        symmetries=Symmetries(disc.reshape(-1, 4, 4), cont),
+        symmetries=Symmetries.from_json(raw, where),
         bank_path=(path.parent / raw["bank"]).resolve(), split=split)
 
 
@@ -491,10 +482,6 @@ def write_object_table(records_dir, entries) -> None:
                "bank": os.path.relpath(pathlib.Path(e.bank_path).resolve(), records_dir)}
         if e.split is not None:
             row["split"] = e.split
-        if len(e.symmetries.discrete):
-            row["symmetries_discrete"] = [m.reshape(-1).tolist() for m in e.symmetries.discrete]
-        if e.symmetries.continuous:
-            row["symmetries_continuous"] = [{"axis": s.axis.tolist(), "offset": s.offset.tolist()}
-                                            for s in e.symmetries.continuous]
+        row.update(e.symmetries.to_json())
         out[str(int(e.obj_id))] = row
     atomic_write_json(records_dir / "objects.json", out, indent=1)

@@ -47,6 +47,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from threept_jax.data.files import atomic_write_bytes
+from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
+from threept_jax.geometry.validate import validate_intrinsics, validate_rotation
 
 from threept_jax.data.ply import load_ply_vertices
 
@@ -54,8 +56,6 @@ __all__ = [
     "Camera",
     "GtInstance",
     "GtInfo",
-    "ContinuousSymmetry",
-    "Symmetries",
     "ObjectModel",
     "PoseEstimate",
     "Detection2D",
@@ -81,8 +81,6 @@ __all__ = [
     "mask_to_rle",
     "rle_to_mask",
     "write_json_atomic",
-    "validate_intrinsics",
-    "validate_rotation",
     "make_pose",
 ]
 
@@ -90,48 +88,6 @@ POSE_CSV_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 # A mesh whose diameter is below this is almost surely in metres (BOP meshes are in mm).
 MIN_DIAMETER_MM = 1.0
-
-
-# ----------------------------------------------------------------------------- validation
-def validate_intrinsics(K, where: str = "K") -> np.ndarray:
-    """Check and return an intrinsic matrix as [3, 3] float64 (upper triangular, fx, fy > 0)."""
-    K = np.asarray(K, dtype=np.float64)
-    if K.size != 9:
-        raise ValueError(f"{where}: cam_K must have 9 entries (3x3 row-major), got {K.size}")
-    K = K.reshape(3, 3)
-    if not np.all(np.isfinite(K)):
-        raise ValueError(f"{where}: cam_K has non-finite entries: {K.tolist()}")
-    if abs(K[1, 0]) > 1e-9 or abs(K[2, 0]) > 1e-9 or abs(K[2, 1]) > 1e-9:
-        raise ValueError(
-            f"{where}: cam_K {K.tolist()} is not upper-triangular; BOP stores K row-major as "
-            "[fx, s, cx, 0, fy, cy, 0, 0, 1] (did you write it column-major or transposed?)"
-        )
-    if abs(K[2, 2] - 1.0) > 1e-9:
-        raise ValueError(f"{where}: cam_K[2][2] is {K[2, 2]}, expected 1 (normalise K by it)")
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError(
-            f"{where}: cam_K focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}"
-        )
-    return K
-
-
-def validate_rotation(R, where: str = "R", atol: float = 1e-3) -> np.ndarray:
-    """Check and return a rotation as [3, 3] float64 (orthonormal within ``atol``, det = +1)."""
-    R = np.asarray(R, dtype=np.float64)
-    if R.size != 9:
-        raise ValueError(f"{where}: a rotation needs 9 values (3x3 row-major), got {R.size}")
-    R = R.reshape(3, 3)
-    if not np.all(np.isfinite(R)):
-        raise ValueError(f"{where}: rotation has non-finite entries: {R.tolist()}")
-    dev = np.abs(R @ R.T - np.eye(3)).max()
-    det = np.linalg.det(R)
-    if dev > atol or det < 0:
-        raise ValueError(
-            f"{where}: rotation {R.tolist()} is not orthonormal (|R R^T - I| = {dev:.2e}, "
-            f"det = {det:.4f}); write R row-major and project it onto SO(3) (e.g. with an SVD) "
-            "before saving"
-        )
-    return R
 
 
 def make_pose(R, t) -> np.ndarray:
@@ -223,36 +179,6 @@ class GtInfo:
 
 
 @dataclass(frozen=True, eq=False)
-class ContinuousSymmetry:
-    """A continuous rotational symmetry: rotation axis [3] through point offset [3] (mm)."""
-
-    axis: np.ndarray
-    offset: np.ndarray
-
-    def __post_init__(self):
-        object.__setattr__(self, "axis", _readonly(np.reshape(self.axis, 3)))
-        object.__setattr__(self, "offset", _readonly(np.reshape(self.offset, 3)))
-
-
-@dataclass(frozen=True, eq=False)
-class Symmetries:
-    """Symmetries of a model as in ``models_info.json``: discrete [S, 4, 4] (without the
-    identity) and continuous ones."""
-
-    discrete: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
-    continuous: tuple[ContinuousSymmetry, ...] = ()
-
-    def __post_init__(self):
-        d = np.asarray(self.discrete, np.float64).reshape(-1, 4, 4)
-        object.__setattr__(self, "discrete", _readonly(d))
-        object.__setattr__(self, "continuous", tuple(self.continuous))
-
-    @property
-    def is_symmetric(self) -> bool:
-        return len(self.discrete) > 0 or len(self.continuous) > 0
-
-
-@dataclass(frozen=True, eq=False)
 class ObjectModel:
     """An object model entry: id, diameter (mm), 3D box (min corner and size, mm),
     symmetries, and the PLY path (None when the folder lacks the mesh)."""
@@ -297,13 +223,7 @@ class ObjectModel:
             "size_y": float(self.bbox_size[1]),
             "size_z": float(self.bbox_size[2]),
         }
-        if len(self.symmetries.discrete):
-            out["symmetries_discrete"] = [m.reshape(-1).tolist() for m in self.symmetries.discrete]
-        if self.symmetries.continuous:
-            out["symmetries_continuous"] = [
-                {"axis": s.axis.tolist(), "offset": s.offset.tolist()}
-                for s in self.symmetries.continuous
-            ]
+        out.update(self.symmetries.to_json())
         return out
 
 
@@ -451,26 +371,13 @@ def _parse_model_info(obj_id: int, info: Mapping, path: pathlib.Path, folder: pa
         )
     lo = [float(info.get(k, 0.0)) for k in ("min_x", "min_y", "min_z")]
     size = [float(info.get(k, 0.0)) for k in ("size_x", "size_y", "size_z")]
-    disc = info.get("symmetries_discrete", [])
-    for i, m in enumerate(disc):
-        if len(m) != 16:
-            raise ValueError(
-                f"{where}: symmetries_discrete[{i}] must have 16 values (4x4 row-major)"
-            )
-        validate_rotation(np.reshape(m, (4, 4))[:3, :3], f"{where} symmetries_discrete[{i}]")
-    cont = []
-    for i, s in enumerate(info.get("symmetries_continuous", [])):
-        axis = np.asarray(s["axis"], np.float64)
-        if axis.shape != (3,) or not np.linalg.norm(axis) > 0:
-            raise ValueError(f"{where}: symmetries_continuous[{i}] needs a non-zero 3-vector axis")
-        cont.append(ContinuousSymmetry(axis, s.get("offset", [0.0, 0.0, 0.0])))
     mesh = folder / f"obj_{obj_id:06d}.ply"
     return ObjectModel(
         obj_id,
         diameter,
         lo,
         size,
-        Symmetries(np.reshape(disc, (-1, 4, 4)), cont),
+        Symmetries.from_json(info, where),
         mesh if mesh.is_file() else None,
     )
 

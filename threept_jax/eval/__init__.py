@@ -22,7 +22,6 @@ from threept_jax.eval.pose_error import (
     rotation_error_deg,
     translation_error,
 )
-from threept_jax.eval.symmetry import symmetry_transforms
 
 __all__ = [
     "ImageGt",
@@ -41,5 +40,4 @@ __all__ = [
     "prepare_model",
     "rotation_error_deg",
     "translation_error",
-    "symmetry_transforms",
 ]

@@ -29,6 +29,7 @@ from typing import Any, Sequence
 import jax
 import numpy as np
 
+from threept_jax.geometry.validate import validate_intrinsics, validate_rigid
 from threept_jax.render.crop import crop_and_resize
 from threept_jax.render.mesh import (
     Mesh,
@@ -71,41 +72,14 @@ def _concrete(x) -> np.ndarray | None:
 
 def check_pose_and_intrinsics(T: Any, K: Any, what: str = "T_cam_obj") -> None:
     """Raise a clear ValueError unless T [..., 4, 4] is rigid and K [..., 3, 3] is a valid
-    pinhole matrix (fx, fy > 0, zero row-2 skew terms, last row 0 0 1). Traced values pass."""
+    pinhole matrix (:mod:`threept_jax.geometry.validate`). Traced values pass: they are
+    checked where they were concrete."""
     Tn = _concrete(T)
     if Tn is not None:
-        if Tn.shape[-2:] != (4, 4):
-            raise ValueError(f"{what} must be [..., 4, 4], got shape {Tn.shape}")
-        if not np.all(np.isfinite(Tn)):
-            raise ValueError(f"{what} has non-finite entries")
-        if np.abs(Tn[..., 3, :] - [0, 0, 0, 1]).max(initial=0) > 1e-6:
-            raise ValueError(f"{what} must have last row [0, 0, 0, 1] (a rigid transform)")
-        R = Tn[..., :3, :3]
-        err = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(initial=0)
-        det = np.linalg.det(R) if R.size else np.ones(1)
-        if err > 1e-3 or np.any(det <= 0):
-            raise ValueError(
-                f"{what} is not a rigid transform (R^T R deviates from I by {err:.3g}, "
-                f"min det {np.min(det):.3g}): it is non-invertible, scaled or reflecting; "
-                "project the rotation with threept_jax.geometry.rotations.project_to_so3"
-            )
-    if K is None:
-        return
-    Kn = _concrete(K)
-    if Kn is None:
-        return
-    if Kn.shape[-2:] != (3, 3):
-        raise ValueError(f"K must be [..., 3, 3], got shape {Kn.shape}")
-    if not np.all(np.isfinite(Kn)):
-        raise ValueError("K has non-finite entries")
-    if np.any(Kn[..., 0, 0] <= 0) or np.any(Kn[..., 1, 1] <= 0):
-        raise ValueError(
-            f"K needs fx > 0 and fy > 0, got fx {Kn[..., 0, 0].min():.4g}, "
-            f"fy {Kn[..., 1, 1].min():.4g} (an image flip belongs in the pose, not in K)"
-        )
-    lower = np.abs(Kn[..., 1, 0]).max(initial=0)
-    if lower > 0 or np.abs(Kn[..., 2, :] - [0, 0, 1]).max(initial=0) > 1e-9:
-        raise ValueError("K must be upper triangular with last row [0, 0, 1]")
+        validate_rigid(Tn, what)
+    Kn = None if K is None else _concrete(K)
+    if Kn is not None:
+        validate_intrinsics(Kn, "K")
 
 
 class Renderer:

@@ -26,6 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from threept_jax.geometry.symmetry import Symmetries
+
 _UNIT_SCALE = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 _MIN_DIAMETER_MM = 1.0
 _MAX_DIAMETER_MM = 5000.0
@@ -104,8 +106,7 @@ class Mesh:
       uv: [N, 2] float32 texture coordinates (OpenGL convention: v = 0 is the image's bottom
         row), or None.
       texture: [Ht, Wt, 3] uint8 RGB image (row 0 at the top), or None; present iff ``uv`` is.
-      symmetries_discrete: [S, 4, 4] float32 BOP discrete symmetries (translations in mm).
-      symmetries_continuous: BOP continuous symmetries, a tuple of (axis [3], offset [3]).
+      symmetries: the object's symmetries (BOP ``models_info.json`` beside the file).
       name: a label for messages.
       diameter: largest vertex distance in mm (computed when not given).
     """
@@ -116,8 +117,7 @@ class Mesh:
     colors: np.ndarray | None = None
     uv: np.ndarray | None = None
     texture: np.ndarray | None = None
-    symmetries_discrete: np.ndarray | None = None
-    symmetries_continuous: tuple = ()
+    symmetries: Symmetries = dataclasses.field(default_factory=Symmetries)
     name: str = "mesh"
     diameter: float | None = None
 
@@ -171,9 +171,6 @@ class Mesh:
                 )
             set_("uv", _readonly(uv))
             set_("texture", _readonly(np.ascontiguousarray(tex)))
-        sd = self.symmetries_discrete
-        sd = np.zeros((0, 4, 4), np.float32) if sd is None else np.asarray(sd, np.float32)
-        set_("symmetries_discrete", _readonly(sd.reshape(-1, 4, 4)))
         if self.diameter is None:
             set_("diameter", mesh_diameter(v))
         _check_units(float(self.diameter), self.name)
@@ -321,13 +318,7 @@ def load_mesh(
         colors = np.asarray(visual.vertex_colors, np.float32)[:, :3] / 255.0
 
     info = _bop_models_info(path, models_info)
-    sym_d, sym_c = None, ()
-    if info:
-        sym_d = np.asarray(info.get("symmetries_discrete", []), np.float32).reshape(-1, 4, 4)
-        sym_c = tuple(
-            (np.asarray(s["axis"], np.float32), np.asarray(s["offset"], np.float32))
-            for s in info.get("symmetries_continuous", [])
-        )
+    symmetries = Symmetries.from_json(info or {}, f"{path.name} models_info.json")
 
     vertices, faces, normals, colors, uv, dropped = _remove_duplicate_faces(
         vertices, faces, normals, colors, uv
@@ -345,8 +336,7 @@ def load_mesh(
         colors=colors,
         uv=uv,
         texture=texture,
-        symmetries_discrete=sym_d,
-        symmetries_continuous=sym_c,
+        symmetries=symmetries,
         name=path.name,
     )
     _warn_quality(mesh)
@@ -481,8 +471,7 @@ def decimate(mesh: Mesh, max_faces: int) -> Mesh:
         colors=colors,
         uv=uv,
         texture=mesh.texture,
-        symmetries_discrete=mesh.symmetries_discrete,
-        symmetries_continuous=mesh.symmetries_continuous,
+        symmetries=mesh.symmetries,
         name=mesh.name,
         diameter=mesh.diameter,
     )
@@ -534,8 +523,7 @@ def subdivide(mesh: Mesh, max_edge: float, max_iterations: int = 16) -> Mesh:
         colors=attrs.get("colors"),
         uv=attrs.get("uv"),
         texture=mesh.texture,
-        symmetries_discrete=mesh.symmetries_discrete,
-        symmetries_continuous=mesh.symmetries_continuous,
+        symmetries=mesh.symmetries,
         name=mesh.name,
         diameter=mesh.diameter,
     )
