@@ -61,8 +61,7 @@ from train.checkpointing import Checkpointer, abstract_with_shardings
 from train.logging_utils import MetricLogger
 
 #: Batch fields the train step reads; the others stay on the host.
-STEP_FIELDS = ("image", "prior_rgb", "template_rgb", "template_rotations", "template_index",
-               "boxes", "mask", "rotations")
+STEP_FIELDS = ("image", "prior_rgb", "template_rgb", "template_index", "boxes", "mask")
 
 #: hook(step, host_batch, host_metrics), called once per step after its metrics arrive.
 Hook = Callable[[int, Mapping[str, np.ndarray], Mapping[str, float]], None]
@@ -125,8 +124,8 @@ def make_optimizer(config: ml_collections.ConfigDict, total_steps: int
 # --------------------------------------------------------------------------- the step
 
 
-def sharded_detection_loss(outputs: dict, targets: dict, template_rotations: jax.Array,
-                           loss_cfg: DetectorLossConfig, mesh: jax.sharding.Mesh):
+def sharded_detection_loss(outputs: dict, targets: dict, loss_cfg: DetectorLossConfig,
+                           mesh: jax.sharding.Mesh):
     """``detection_loss`` with the Hungarian matching run per device on its batch shard.
 
     Under plain ``jit`` the matcher's host callback would gather the whole batch's cost
@@ -138,8 +137,8 @@ def sharded_detection_loss(outputs: dict, targets: dict, template_rotations: jax
     """
     spec = lambda x: P() if jnp.ndim(x) == 0 else P(sharding.BATCH_AXES)  # noqa: E731
 
-    def local(outputs, targets, template_rotations):
-        _, metrics = detection_loss(outputs, targets, template_rotations, loss_cfg)
+    def local(outputs, targets):
+        _, metrics = detection_loss(outputs, targets, loss_cfg)
         n_local = metrics["num_boxes"]
         n_total = jax.lax.psum(n_local, sharding.BATCH_AXES)
         scale = jnp.maximum(n_local, 1.0)
@@ -148,7 +147,7 @@ def sharded_detection_loss(outputs: dict, targets: dict, template_rotations: jax
         out["num_boxes"] = n_total
         return out["loss"], out
 
-    args = (outputs, targets, template_rotations)
+    args = (outputs, targets)
     return jax.shard_map(local, mesh=mesh, in_specs=jax.tree.map(spec, args),
                          out_specs=(P(), P()))(*args)
 
@@ -169,10 +168,8 @@ def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
         bank = model.embed_templates(batch["template_rgb"])  # [B, Nt, E]
         outputs = model(batch["image"], prior_tokens, bank)
         targets = make_targets(batch["boxes"], tile_hw, batch["mask"],
-                               rotations=batch["rotations"],
                                template_index=batch["template_index"])
-        return sharded_detection_loss(outputs, targets, batch["template_rotations"], loss_cfg,
-                                      mesh)
+        return sharded_detection_loss(outputs, targets, loss_cfg, mesh)
 
     def train_step(state, batch):
         if trace_counter is not None:

@@ -132,18 +132,6 @@ def test_negative_queries_are_absent_objects(toy):
         assert not out["mask"].any() and not out["ignore"].any()
 
 
-def test_positive_templates_match_brute_force():
-    tmpl = Rotation.random(300, random_state=3).as_matrix()
-    sym = banks.bank_symmetries(banks.Symmetries(discrete=np.diag([-1.0, -1.0, 1.0, 1.0])[None]))
-    R = Rotation.random(25, random_state=4).as_matrix()
-    index, equivalents = pl.positive_templates_np(R, tmpl, sym)
-    for r, i, eq in zip(R, index, equivalents, strict=True):
-        ang = np.stack([(Rotation.from_matrix(tmpl).inv()
-                         * Rotation.from_matrix(r @ s[:3, :3])).magnitude() for s in sym])
-        assert i == np.argmin(ang.min(0))
-        assert set(eq.tolist()) == set(np.argmin(ang, axis=1).tolist())
-
-
 def test_attach_renders_samples_positives_and_negatives(toy):
     table = banks.load_object_table(toy)
     cache = pl.BankCache(table)

@@ -6,14 +6,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
-from threept_jax.geometry.grids import super_fibonacci_rotations
 from threept_jax.losses.detection import (
     DetectorLossConfig,
     detection_loss,
     make_targets,
-    positive_templates,
     soft_negative_weights,
 )
 
@@ -42,14 +39,11 @@ def test_make_targets_hand_case():
     # A 64 x 128 (H x W) tile; box (16, 32, 48, 64) px -> xyxy (.125, .5, .375, 1).
     boxes = jnp.asarray([[[16.0, 32.0, 48.0, 64.0], [0.0, 0.0, 500.0, 500.0]]])
     t = jax.jit(make_targets, static_argnums=1)(
-        boxes, (64, 128), jnp.asarray([[True, False]]),
-        rotations=jnp.broadcast_to(jnp.eye(3), (1, 2, 3, 3)),
-        symmetries=jnp.broadcast_to(jnp.eye(4), (1, 2, 3, 4, 4)))
+        boxes, (64, 128), jnp.asarray([[True, False]]), template_index=jnp.asarray([[3, 0]]))
     np.testing.assert_allclose(t["boxes"], [[[0.25, 0.75, 0.25, 0.5], [0, 0, 0, 0]]])
-    assert t["symmetries"].shape == (1, 2, 3, 3, 3)
-    np.testing.assert_array_equal(t["symmetry_mask"], [[[1, 1, 1], [0, 0, 0]]])
-    with pytest.raises(ValueError, match=r"\[B, M, 3, 3\]"):
-        make_targets(boxes, (64, 128), jnp.ones((1, 2), bool), rotations=jnp.eye(3))
+    np.testing.assert_array_equal(t["template_index"], [[3, 0]])
+    with pytest.raises(ValueError, match=r"template_index must be \[B, M\]"):
+        make_targets(boxes, (64, 128), jnp.ones((1, 2), bool), template_index=jnp.zeros(2))
 
 
 def test_soft_negative_weights_hand_case():
@@ -96,7 +90,7 @@ def _hand_case():
 def test_detection_loss_hand_case():
     gt, preds, presence, emb, bank, outputs, targets = _hand_case()
     cfg = DetectorLossConfig()
-    loss, m = jax.jit(detection_loss, static_argnums=3)(outputs, targets, None, cfg)
+    loss, m = jax.jit(detection_loss, static_argnums=2)(outputs, targets, cfg)
     # Hypothesis 0 is matched (it is inside the ground truth and the most confident).
     u1 = iou_xyxy(preds[1], gt)  # 0.08 / 0.176
     presence_ref = (focal(presence[0], 1) + (1 - u1) * focal(presence[1], 0)
@@ -121,7 +115,7 @@ def test_detection_loss_gradients_are_finite_and_skip_padding():
     cfg = DetectorLossConfig()
 
     def f(out):
-        return detection_loss(out, targets, None, cfg)[0]
+        return detection_loss(out, targets, cfg)[0]
 
     grads = jax.jit(jax.grad(f))(outputs)
     for g in jax.tree_util.tree_leaves(grads):
@@ -132,71 +126,16 @@ def test_detection_loss_gradients_are_finite_and_skip_padding():
     assert float(grads["logit_scale"]) != 0.0
 
 
-def brute_force_positive(R, syms, templates):
-    """argmin_t min_s angle(template_t, R @ S_s) with SciPy, plus each equivalent's nearest."""
-    eq = [R] + [R @ S for S in syms]
-    angles = np.array([[Rotation.from_matrix(t.T @ q).magnitude() for q in eq] for t in templates])
-    return int(np.argmin(angles.min(1))), set(np.argmin(angles, 0).tolist())
-
-
-def test_positive_templates_match_brute_force_with_symmetries():
-    templates = super_fibonacci_rotations(240)
-    rng = np.random.default_rng(0)
-    R = Rotation.random(4, random_state=1).as_matrix().astype(np.float32).reshape(2, 2, 3, 3)
-    # Object 0: 4-fold symmetry about z (+ one masked garbage entry); object 1: none.
-    z4 = [Rotation.from_euler("z", 90 * k, degrees=True).as_matrix() for k in (1, 2, 3)]
-    garbage = Rotation.random(random_state=2).as_matrix()
-    sym = np.zeros((2, 2, 4, 4, 4), np.float32)
-    sym[..., :3, :3] = np.stack([*z4, garbage])
-    sym[..., 3, 3] = 1.0
-    smask = np.zeros((2, 2, 4), bool)
-    smask[:, 0, :3] = True
-    f = jax.jit(positive_templates, static_argnames=("mode", "chunk"))
-    index, pos_nearest = f(R, templates, sym[..., :3, :3], smask, mode="nearest", chunk=1)
-    _, pos_all = f(R, templates, sym, smask, mode="all")
-    for b in range(2):
-        for m in range(2):
-            syms = [s[:3, :3] for s, ok in zip(sym[b, m], smask[b, m], strict=True) if ok]
-            ref_index, ref_all = brute_force_positive(R[b, m].astype(np.float64), syms, templates)
-            assert int(index[b, m]) == ref_index
-            assert np.flatnonzero(pos_nearest[b, m]).tolist() == [ref_index]
-            assert set(np.flatnonzero(pos_all[b, m]).tolist()) == ref_all
-    assert len(ref_all) == 1  # the last instance has no symmetry
-    # Symmetric equivalents of a pose share their positive template.
-    R_sym = R.copy()
-    R_sym[:, 0] = R[:, 0] @ z4[1].astype(np.float32)
-    index_sym, _ = f(R_sym, templates, sym, smask, mode="nearest", chunk=16)
-    np.testing.assert_array_equal(index_sym[:, 0], index[:, 0])
-    # Per-image template sets: shuffling image 1's templates moves its positives accordingly.
-    perm = rng.permutation(len(templates))
-    per_image = np.stack([templates, templates[perm]])
-    index_img, _ = f(R, per_image, sym, smask, mode="nearest", chunk=16)
-    np.testing.assert_array_equal(index_img[0], index[0])
-    np.testing.assert_array_equal(perm[np.asarray(index_img[1])], index[1])
-
-
-def test_loss_from_rotations_equals_loss_from_template_index():
+def test_orientation_inputs_are_checked():
     _, _, _, _, _, outputs, targets = _hand_case()
-    rots = Rotation.random(3, random_state=3).as_matrix().astype(np.float32)
-    gt_rot = Rotation.random(2, random_state=4).as_matrix().astype(np.float32)[None]
-    with_rot = {k: v for k, v in targets.items() if k != "template_index"}
-    with_rot["rotations"] = jnp.asarray(gt_rot)
     cfg = DetectorLossConfig()
-    index, _ = jax.jit(positive_templates)(gt_rot, rots)
-    with_index = {**targets, "template_index": index}
-    f = jax.jit(detection_loss, static_argnums=3)
-    a = f(outputs, with_rot, rots, cfg)[0]
-    b = f(outputs, with_index, None, cfg)[0]
-    np.testing.assert_allclose(a, b, rtol=1e-6)
-    with pytest.raises(ValueError, match="template_rotations"):
-        detection_loss(outputs, with_rot, None, cfg)
+    with pytest.raises(ValueError, match="template_index"):
+        detection_loss(outputs, {k: v for k, v in targets.items() if k != "template_index"}, cfg)
     with pytest.raises(ValueError, match="orientation_weight=0"):
-        detection_loss({k: outputs[k] for k in ("boxes", "presence_logits")}, targets, None, cfg)
+        detection_loss({k: outputs[k] for k in ("boxes", "presence_logits")}, targets, cfg)
 
 
 def test_config_validation():
-    with pytest.raises(ValueError, match="symmetric_positives"):
-        DetectorLossConfig(symmetric_positives="any")
     with pytest.raises(ValueError, match="soft_matching"):
         DetectorLossConfig(soft_matching=2.0)
 
@@ -207,7 +146,7 @@ def test_one_to_many_matching_hand_case():
     # with full weight (it overlaps nothing).
     gt, preds, presence, emb, bank, outputs, targets = _hand_case()
     cfg = DetectorLossConfig(matches_per_target=2)
-    loss, m = jax.jit(detection_loss, static_argnums=3)(outputs, targets, None, cfg)
+    loss, m = jax.jit(detection_loss, static_argnums=2)(outputs, targets, cfg)
     presence_ref = (focal(presence[0], 1) + focal(presence[1], 1) + focal(presence[2], 0)) / 2
     l1_ref = sum(sum(abs(a - b) for a, b in zip(cxcywh(p), cxcywh(gt), strict=True))
                  for p in preds[:2]) / 2

@@ -190,7 +190,7 @@ def test_training_loss_gradients_reach_every_head(tiny):
     def step(m):
         def loss_fn(m):
             out = m(tiles, m.embed_object(priors), m.embed_templates(templates))
-            return detection_loss(out, targets, None, cfg)
+            return detection_loss(out, targets, cfg)
 
         return nnx.value_and_grad(loss_fn, argnums=nnx.DiffState(0, heads), has_aux=True)(m)
 

@@ -60,11 +60,12 @@ import numpy as np
 
 from threept_jax.data import records
 from threept_jax.data.banks import BankFile, ObjectEntry, load_object_table, object_centred_rotation
+from threept_jax.geometry.symmetry import nearest_templates
 
 __all__ = [
     "AttachRenders", "BankCache", "DecodeExample", "ExampleConfig", "PhotometricAugment",
     "PhotometricConfig", "SampleTile", "augment_image", "crop_transform", "detection_dataset",
-    "find_shards", "positive_templates_np", "resize_renders", "warp_crop",
+    "find_shards", "resize_renders", "warp_crop",
 ]
 
 #: Object sizes (pixels on a 512 tile) that training puts objects at (DESIGN.md section 1.1).
@@ -370,30 +371,6 @@ class SampleTile(grain.transforms.RandomMap):
         }
 
 
-def positive_templates_np(rotations: np.ndarray, template_rotations: np.ndarray,
-                          symmetries: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Symmetry-aware nearest templates, float64.
-
-    rotations [M, 3, 3] (object-centred ground truth), template_rotations [T, 3, 3],
-    symmetries [S, 4, 4] or [S, 3, 3] (object frame, identity included). Returns
-    ``(index [M], equivalents)``: index[m] = argmin_t min_s angle(template_t, R_m S_s), and
-    equivalents[m] the set of nearest templates of each R_m S_s (they render like the
-    positive). The geodesic angle decreases with trace(A^T B), so both are argmaxes of one
-    [T, 9] x [9, S] product per instance.
-    """
-    R = np.asarray(rotations, np.float64)
-    tmpl = np.asarray(template_rotations, np.float64).reshape(-1, 9)
-    sym = np.asarray(symmetries, np.float64)[:, :3, :3]
-    index = np.zeros(len(R), np.int64)
-    equivalents = []
-    for i, r in enumerate(R):
-        cands = np.einsum("ij,sjk->sik", r, sym).reshape(len(sym), 9)
-        score = tmpl @ cands.T  # [T, S]
-        index[i] = int(np.argmax(score.max(axis=1)))
-        equivalents.append(np.unique(np.argmax(score, axis=0)))
-    return index, equivalents
-
-
 def resize_renders(images: np.ndarray, size: int | None) -> np.ndarray:
     """uint8 [N, h, w, 3] -> [N, size, size, 3] (area filter when shrinking); ``None`` keeps."""
     if size is None or images.shape[1:3] == (size, size):
@@ -435,8 +412,8 @@ class AttachRenders(grain.transforms.RandomMap):
         M = len(ex["mask"])
         index = np.zeros(M, np.int32)
         if valid.size:
-            pos, equivalents = positive_templates_np(ex["rotations"][valid],
-                                                     bank.template_rotations, sym)
+            pos, equivalents = nearest_templates(ex["rotations"][valid],
+                                                  bank.template_rotations, sym)
             positives = np.unique(pos)
             excluded = np.union1d(positives, np.concatenate(equivalents))
         else:

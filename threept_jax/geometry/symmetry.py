@@ -34,6 +34,8 @@ __all__ = [
     "Symmetries",
     "axis_angle_rotation",
     "symmetry_transforms",
+    "nearest_templates",
+    "symmetric_angle_deg",
     "MAX_SYM_DISC_STEP",
 ]
 
@@ -163,3 +165,37 @@ def symmetry_transforms(
     Rs = np.stack([r for r, _ in out]).astype(np.float64)
     ts = np.stack([t for _, t in out]).astype(np.float64)
     return Rs, ts
+
+
+def nearest_templates(rotations: np.ndarray, template_rotations: np.ndarray,
+                      symmetries: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The template nearest to each rotation up to the object's symmetries (float64).
+
+    rotations [M, 3, 3] (R_cam_obj), template_rotations [T, 3, 3], symmetries [S, 4, 4] or
+    [S, 3, 3] (object frame, identity included, e.g. from :func:`symmetry_transforms`).
+    Returns ``(index [M], equivalents)``: ``index[m] = argmin_t min_s angle(template_t,
+    R_m S_s)``, and ``equivalents[m]`` the nearest template of every ``R_m S_s`` (they render
+    like the nearest one). The geodesic angle decreases with trace(A^T B), so both are argmaxes
+    of one [T, 9] x [9, S] product per rotation.
+    """
+    R = np.asarray(rotations, np.float64).reshape(-1, 3, 3)
+    tmpl = np.asarray(template_rotations, np.float64).reshape(-1, 9)
+    sym = np.asarray(symmetries, np.float64)[:, :3, :3]
+    index = np.zeros(len(R), np.int64)
+    equivalents = []
+    for i, r in enumerate(R):
+        cands = np.einsum("ij,sjk->sik", r, sym).reshape(len(sym), 9)
+        score = tmpl @ cands.T  # [T, S]
+        index[i] = int(np.argmax(score.max(axis=1)))
+        equivalents.append(np.unique(np.argmax(score, axis=0)))
+    return index, equivalents
+
+
+def symmetric_angle_deg(R_a: np.ndarray, R_b: np.ndarray, symmetries: np.ndarray) -> np.ndarray:
+    """min_s angle(R_a, R_b S_s) in degrees, float64: R_a [N, 3, 3], R_b [N, 3, 3], symmetries
+    [S, 4, 4] or [S, 3, 3] (object frame, identity included)."""
+    sym = np.asarray(symmetries, np.float64)[:, :3, :3]
+    cands = np.einsum("nij,sjk->nsik", np.asarray(R_b, np.float64), sym)  # [N, S, 3, 3]
+    tr = np.einsum("nij,nsij->ns", np.asarray(R_a, np.float64), cands)  # trace(R_a^T R_b S)
+    cos = np.clip((tr.max(axis=1) - 1.0) / 2.0, -1.0, 1.0)
+    return np.degrees(np.arccos(cos))

@@ -18,7 +18,8 @@ each queried with one object (DESIGN.md section 1.1, "Training"):
   logits against the template bank, ``scale * cos + bias`` [T], and a target that is 1 at the
   positive template and 0 at every other template. The positive is the template nearest to
   the ground-truth rotation taking the object's symmetries into account
-  (:func:`positive_templates`).
+  (:func:`threept_jax.geometry.symmetry.nearest_templates`, computed by the input pipeline in
+  float64 and passed as ``template_index``).
 
 **One-to-many matching** (``matches_per_target`` = k > 1, off by default): every target is
 repeated k times before the Hungarian matching, so k hypotheses per instance are positives
@@ -33,8 +34,7 @@ normalisation; under ``jit`` with a sharded batch the sum is global). Weights an
 parameters come from :class:`DetectorLossConfig` (or any object with the same attribute names,
 e.g. an ``ml_collections.ConfigDict``).
 
-Shapes: B tiles, P hypotheses, M padded targets per tile, T templates, E embedding dim,
-Ns symmetries per object.
+Shapes: B tiles, P hypotheses, M padded targets per tile, T templates, E embedding dim.
 """
 
 from __future__ import annotations
@@ -58,11 +58,7 @@ class DetectorLossConfig:
 
     Matching costs and box weights are DETR's (class 2, L1 5, GIoU 2, as in Deformable-DETR
     and OWL-ViT); focal alpha 0.25, gamma 2 (RetinaNet). ``soft_matching`` is lambda of the
-    soft-scaled matching loss (0 turns it off). ``symmetric_positives``: ``"nearest"`` makes
-    the single template nearest to any symmetric equivalent of the ground truth positive
-    (issue #6's definition); ``"all"`` makes the nearest template to *each* equivalent
-    positive, which stops the loss from pushing apart templates that render identically.
-    ``symmetry_chunk`` instances are processed at a time when searching T x Ns candidates.
+    soft-scaled matching loss (0 turns it off).
     ``matches_per_target``: hypotheses matched to each target (1: DETR's one-to-one).
     """
 
@@ -78,18 +74,11 @@ class DetectorLossConfig:
     orientation_alpha: float | None = 0.25
     orientation_gamma: float = 2.0
     soft_matching: float = 1.0
-    symmetric_positives: str = "nearest"
-    symmetry_chunk: int = 16
     matches_per_target: int = 1
 
     def __post_init__(self):
-        if self.symmetric_positives not in ("nearest", "all"):
-            raise ValueError(
-                f"symmetric_positives must be 'nearest' or 'all', got {self.symmetric_positives!r}")
         if not 0.0 <= self.soft_matching <= 1.0:
             raise ValueError(f"soft_matching (lambda) must be in [0, 1], got {self.soft_matching}")
-        if self.symmetry_chunk < 1:
-            raise ValueError(f"symmetry_chunk must be >= 1, got {self.symmetry_chunk}")
         if self.matches_per_target < 1:
             raise ValueError(f"matches_per_target must be >= 1, got {self.matches_per_target}")
 
@@ -101,9 +90,6 @@ def make_targets(
     boxes_xyxy: Array,
     image_hw: tuple[int, int],
     mask: Array,
-    rotations: Array | None = None,
-    symmetries: Array | None = None,
-    symmetry_mask: Array | None = None,
     template_index: Array | None = None,
 ) -> dict[str, Array]:
     """Per-tile targets the loss consumes.
@@ -112,110 +98,27 @@ def make_targets(
       boxes_xyxy: [B, M, 4] ground-truth boxes in tile pixels (pixel-edge xyxy), padded.
       image_hw: (H, W) of the tile the boxes refer to.
       mask: [B, M] True for real instances.
-      rotations: [B, M, 3, 3] ground-truth R_cam_obj (the convention of the template
-        rotations).
-      symmetries: [B, M, Ns, 4, 4] or [B, M, Ns, 3, 3] BOP symmetry transformations of each
-        instance's object (object frame), padded; the identity need not be included.
-      symmetry_mask: [B, M, Ns] True for real symmetries (default: all real).
-      template_index: [B, M] precomputed positive template, instead of rotations.
+      template_index: [B, M] the positive template of each instance (nearest to the ground
+        truth up to symmetry), needed by the orientation term.
 
     Returns a dict with ``boxes`` [B, M, 4] normalised cxcywh (clipped to the tile, zero where
-    padded), ``mask`` [B, M] and, when given, ``rotations``, ``symmetries`` [B, M, Ns, 3, 3],
-    ``symmetry_mask`` and ``template_index``.
+    padded), ``mask`` [B, M] and, when given, ``template_index``.
     """
     boxes_xyxy = jnp.asarray(boxes_xyxy, jnp.float32)
     mask = jnp.asarray(mask, bool)
     if boxes_xyxy.ndim != 3 or boxes_xyxy.shape[-1] != 4 or mask.shape != boxes_xyxy.shape[:2]:
         raise ValueError(f"boxes_xyxy must be [B, M, 4] and mask [B, M], got "
                          f"{boxes_xyxy.shape} and {mask.shape}")
-    if rotations is not None and jnp.shape(rotations) != (*mask.shape, 3, 3):
-        raise ValueError(f"rotations must be [B, M, 3, 3], got {jnp.shape(rotations)}")
-    if symmetries is not None:
-        shape = jnp.shape(symmetries)
-        if len(shape) != 5 or shape[:2] != mask.shape or shape[-2:] not in ((3, 3), (4, 4)):
-            raise ValueError(
-                f"symmetries must be [B, M, Ns, 4, 4] or [B, M, Ns, 3, 3], got {shape}")
-    elif symmetry_mask is not None:
-        raise ValueError("symmetry_mask given without symmetries")
+    if template_index is not None and jnp.shape(template_index) != mask.shape:
+        raise ValueError(f"template_index must be [B, M] = {mask.shape}, got "
+                         f"{jnp.shape(template_index)}")
     h, w = image_hw
     scale = jnp.asarray([w, h, w, h], jnp.float32)
     norm = jnp.clip(boxes_xyxy / scale, 0.0, 1.0)
     out = {"boxes": jnp.where(mask[..., None], xyxy_to_cxcywh(norm), 0.0), "mask": mask}
-    if rotations is not None:
-        rotations = jnp.asarray(rotations, jnp.float32)
-        out["rotations"] = jnp.where(mask[..., None, None], rotations, jnp.eye(3))
-    if symmetries is not None:
-        symmetries = jnp.asarray(symmetries, jnp.float32)
-        out["symmetries"] = symmetries[..., :3, :3]
-        if symmetry_mask is None:
-            symmetry_mask = jnp.ones(symmetries.shape[:3], bool)
-        out["symmetry_mask"] = jnp.asarray(symmetry_mask, bool) & mask[..., None]
     if template_index is not None:
         out["template_index"] = jnp.asarray(template_index, jnp.int32)
     return out
-
-
-def positive_templates(
-    rotations: Array,
-    template_rotations: Array,
-    symmetries: Array | None = None,
-    symmetry_mask: Array | None = None,
-    *,
-    mode: str = "nearest",
-    chunk: int = 16,
-) -> tuple[Array, Array]:
-    """Symmetry-aware positive templates of ground-truth rotations.
-
-    rotations [B, M, 3, 3]; template_rotations [T, 3, 3] or [B, T, 3, 3]; symmetries
-    [B, M, Ns, 3, 3] (object frame) with symmetry_mask [B, M, Ns]. The equivalent ground-truth
-    rotations are R and R @ S_i for the valid S_i. Returns ``(index [B, M] int32, positives
-    [B, M, T] bool)``: index = argmin_t min_i angle(template_t, R @ S_i); positives is its
-    one-hot (``mode="nearest"``) or marks the nearest template of every equivalent
-    (``mode="all"``).
-
-    The geodesic angle is monotone in trace(A^T B) = <A, B>_F, so the search is one
-    [T, 9] x [9, 1 + Ns] matrix product per instance, processed ``chunk`` instances at a time
-    to bound memory at chunk * T * (1 + Ns) floats.
-    """
-    if mode not in ("nearest", "all"):
-        raise ValueError(f"mode must be 'nearest' or 'all', got {mode!r}")
-    rotations = jnp.asarray(rotations, jnp.float32)
-    b, m = rotations.shape[:2]
-    tmpl = jnp.asarray(template_rotations, jnp.float32)
-    if tmpl.ndim == 3:
-        tmpl = jnp.broadcast_to(tmpl[None], (b, *tmpl.shape))
-    if tmpl.ndim != 4 or tmpl.shape[0] != b or tmpl.shape[-2:] != (3, 3):
-        raise ValueError(f"template_rotations must be [T, 3, 3] or [B={b}, T, 3, 3], got "
-                         f"{jnp.shape(template_rotations)}")
-    num_t = tmpl.shape[1]
-    cands = rotations[:, :, None]  # [B, M, 1, 3, 3]
-    cmask = jnp.ones((b, m, 1), bool)
-    if symmetries is not None:
-        sym = jnp.asarray(symmetries, jnp.float32)[..., :3, :3]
-        smask = (jnp.ones(sym.shape[:3], bool) if symmetry_mask is None
-                 else jnp.asarray(symmetry_mask, bool))
-        cands = jnp.concatenate([cands, jnp.einsum("bmij,bmsjk->bmsik", rotations, sym)], 2)
-        cmask = jnp.concatenate([cmask, smask], 2)
-    cands = cands.reshape(b, m, -1, 9)
-    iota = jnp.arange(num_t)
-
-    def per_image(args):
-        t9, q, qm = args  # [T, 9], [M, C, 9], [M, C]
-
-        def per_instance(inst):
-            qi, qmi = inst  # [C, 9], [C]
-            score = jnp.where(qmi[None], t9 @ qi.T, -jnp.inf)  # [T, C], trace form
-            index = jnp.argmax(jnp.max(score, 1)).astype(jnp.int32)
-            if mode == "nearest":
-                pos = iota == index
-            else:
-                best = jnp.argmax(score, 0)  # nearest template of each equivalent, [C]
-                pos = jnp.any((iota[:, None] == best[None]) & qmi[None], 1)
-            return index, pos
-
-        return jax.lax.map(per_instance, (q, qm), batch_size=max(1, min(chunk, m)))
-
-    return jax.lax.map(per_image, (tmpl.reshape(b, num_t, 9), cands, cmask))
 
 
 def repeat_targets(targets: dict[str, Array], k: int) -> dict[str, Array]:
@@ -250,7 +153,7 @@ def _paired_giou(a: Array, b: Array) -> Array:
     return generalized_box_iou(a, b)[..., 0, 0]
 
 
-def _check_orientation_inputs(outputs, targets, template_rotations, config) -> None:
+def _check_orientation_inputs(outputs, targets, config) -> None:
     """Fail before any compute when the orientation term lacks an input."""
     if not config.orientation_weight:
         return
@@ -259,38 +162,26 @@ def _check_orientation_inputs(outputs, targets, template_rotations, config) -> N
             raise ValueError(
                 f"orientation loss needs outputs[{key!r}]: call the detector with a "
                 "template_bank, or set orientation_weight=0")
-    if "template_index" in targets:
-        return
-    if "rotations" not in targets:
-        raise ValueError("orientation loss needs targets['template_index'] or "
-                         "targets['rotations'] (see make_targets), or orientation_weight=0")
-    if template_rotations is None:
-        raise ValueError("targets carry rotations: pass template_rotations [T, 3, 3] "
-                         "(or [B, T, 3, 3]) matching the template bank rows")
-    num_t = outputs["template_bank"].shape[-2]
-    if jnp.shape(template_rotations)[-3] != num_t:
-        raise ValueError(f"{jnp.shape(template_rotations)[-3]} template rotations for a "
-                         f"bank of {num_t} templates")
+    if "template_index" not in targets:
+        raise ValueError("orientation loss needs targets['template_index'] (see make_targets), "
+                         "or orientation_weight=0")
 
 
 def detection_loss(outputs: dict[str, Array], targets: dict[str, Array],
-                   template_rotations: Array | None, config: Any) -> tuple[Array, dict[str, Array]]:
+                   config: Any) -> tuple[Array, dict[str, Array]]:
     """Total 3PT-D loss and metrics for one batch (formulas in the module docstring).
 
     Args:
       outputs: ``Detector.__call__`` outputs: ``boxes`` [B, P, 4], ``presence_logits``
         [B, P], ``embeddings`` [B, P, E] and, for the orientation term, ``template_bank``
         [B, T, E] or [T, E], ``logit_scale`` and ``logit_bias``.
-      targets: :func:`make_targets` output; the orientation term needs ``template_index`` or
-        ``rotations`` (+ optional ``symmetries``/``symmetry_mask``).
-      template_rotations: [T, 3, 3] or [B, T, 3, 3] rotations of the template bank's rows
-        (unused when targets carry ``template_index``).
+      targets: :func:`make_targets` output; the orientation term needs ``template_index``.
       config: :class:`DetectorLossConfig` or an object with the same fields.
 
     Returns ``(loss, metrics)``; ``metrics`` holds each weighted-free term, the number of
     matched targets, the mean IoU of matched pairs and the orientation top-1 accuracy.
     """
-    _check_orientation_inputs(outputs, targets, template_rotations, config)
+    _check_orientation_inputs(outputs, targets, config)
     targets = repeat_targets(targets, int(getattr(config, "matches_per_target", 1)))
     pred_boxes = outputs["boxes"].astype(jnp.float32)
     presence = outputs["presence_logits"].astype(jnp.float32)
@@ -343,14 +234,8 @@ def detection_loss(outputs: dict[str, Array], targets: dict[str, Array],
         eq = "bme,te->bmt" if bank.ndim == 2 else "bme,bte->bmt"
         logits = outputs["logit_scale"] * jnp.einsum(eq, emb, bank) + outputs["logit_bias"]
         num_t = logits.shape[-1]
-        if "template_index" in targets:
-            index = jnp.asarray(targets["template_index"], jnp.int32)
-            positives = index[..., None] == jnp.arange(num_t)
-        else:
-            index, positives = positive_templates(
-                targets["rotations"], template_rotations, targets.get("symmetries"),
-                targets.get("symmetry_mask"), mode=config.symmetric_positives,
-                chunk=config.symmetry_chunk)
+        positives = jnp.asarray(targets["template_index"], jnp.int32)[..., None] == jnp.arange(
+            num_t)
         fl = sigmoid_focal_loss(logits, positives, alpha=config.orientation_alpha,
                                 gamma=config.orientation_gamma)
         loss_orient = jnp.sum(jnp.where(valid[..., None], fl, 0.0)) / num_boxes

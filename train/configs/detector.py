@@ -50,7 +50,7 @@ def _base() -> ml_collections.ConfigDict:
         cost_class=2.0, cost_l1=5.0, cost_giou=2.0,
         presence_weight=2.0, l1_weight=5.0, giou_weight=2.0, orientation_weight=1.0,
         focal_alpha=0.25, focal_gamma=2.0, orientation_alpha=0.25, orientation_gamma=2.0,
-        soft_matching=1.0, symmetric_positives="nearest", symmetry_chunk=16,
+        soft_matching=1.0,
         matches_per_target=1,
     ))
     c.optim = ml_collections.ConfigDict(dict(
