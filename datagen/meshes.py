@@ -36,7 +36,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from datagen.procedural import Part, mesh_diameter
+from datagen.procedural import Part
+from threept_jax.geometry.diameter import mesh_diameter
 from threept_jax.geometry.symmetry import Symmetries
 
 MESH_EXTENSIONS = (".ply", ".obj", ".glb", ".gltf", ".stl", ".off")

@@ -38,6 +38,7 @@ import trimesh
 from scipy.spatial import ConvexHull
 from scipy.spatial.distance import pdist
 
+from threept_jax.geometry.diameter import mesh_diameter
 from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
 
 DIAMETER_RANGE_MM = (20.0, 250.0)
@@ -127,16 +128,6 @@ def _to_trimesh(m: mf.Manifold) -> trimesh.Trimesh:
     vertices = np.ascontiguousarray(np.asarray(mesh.vert_properties, np.float64)[:, :3])
     faces = np.ascontiguousarray(mesh.tri_verts, np.int64)
     return trimesh.Trimesh(vertices, faces, process=False)
-
-
-def mesh_diameter(vertices: np.ndarray) -> float:
-    """Largest distance between two of ``vertices`` [N, 3] (exact: it is attained on the hull)."""
-    v = np.asarray(vertices, np.float64)
-    try:
-        v = v[ConvexHull(v).vertices]
-    except Exception:  # degenerate (flat) point sets: pdist over all points is still exact
-        pass
-    return float(pdist(v).max()) if len(v) > 1 else 0.0
 
 
 # --------------------------------------------------------------------------------------------

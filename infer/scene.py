@@ -24,7 +24,7 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from threept_jax.geometry.camera import invert, ray_rotation
+from threept_jax.geometry.camera import box_center_ray, camera_rotation, invert
 from threept_jax.geometry.so3_kde import (kappa_from_std_deg, kde_mean_shift, top_k_separated,
                                           vmf_kde)
 from threept_jax.geometry.triangulation import match_across_views
@@ -101,9 +101,8 @@ def fuse_views(detections: Sequence[Sequence[Detection]], Ks: np.ndarray, T_cam_
         props, weights = [], []
         for v, det in members:
             top = np.argsort(-det.template_scores)[:proposals_per_view]
-            ray = np.linalg.solve(Ks[v].astype(np.float64),
-                                  np.append((det.box[:2] + det.box[2:]) / 2 - 0.5, 1.0))
-            R_cam = ray_rotation(ray) @ obj.template_rotations[top].astype(np.float64)
+            ray = box_center_ray(np.asarray(det.box, np.float64), Ks[v].astype(np.float64))
+            R_cam = camera_rotation(obj.template_rotations[top], ray)
             props.append(T_world_cam[v, :3, :3].astype(np.float64) @ R_cam)
             logits = logit_scale * det.template_scores[top].astype(np.float64)
             w = np.exp(logits - logits.max())

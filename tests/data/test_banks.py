@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from threept_jax.data import banks
+from threept_jax.geometry import camera
 from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
 from threept_jax.geometry.grids import prior_view_rotations, super_fibonacci_rotations
 
@@ -105,12 +106,12 @@ def test_render_camera_sphere_fills_the_stated_share():
 def test_ray_rotation_is_the_shortest_arc():
     rng = np.random.default_rng(5)
     pts = rng.normal(size=(50, 3)) * [300, 200, 50] + [0, 0, 600]
-    R = banks.ray_rotation(pts)
+    R = camera.ray_rotation(pts)
     for p, r in zip(pts, R, strict=True):
         d = p / np.linalg.norm(p)
         ref, _ = Rotation.align_vectors([d], [[0.0, 0.0, 1.0]])
         np.testing.assert_allclose(r, ref.as_matrix(), atol=1e-9)
-    np.testing.assert_allclose(banks.ray_rotation(np.array([0.0, 0, 5])), np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(camera.ray_rotation(np.array([0.0, 0, 5])), np.eye(3), atol=1e-12)
 
 
 def test_object_centred_rotation_puts_the_centre_on_the_axis():
@@ -119,9 +120,9 @@ def test_object_centred_rotation_puts_the_centre_on_the_axis():
     t = rng.normal(size=(20, 3)) * [200, 150, 30] + [0, 0, 700]
     c = np.array([10.0, -4.0, 25.0])
     centre_cam = np.einsum("nij,j->ni", R, c) + t
-    R_obj = banks.object_centred_rotation(R, centre_cam)
+    R_obj = camera.object_centred_rotation(R, centre_cam)
     # In the virtual camera R_ray^T, the object centre lies on +z.
-    virt = np.einsum("nji,nj->ni", banks.ray_rotation(centre_cam), centre_cam)
+    virt = np.einsum("nji,nj->ni", camera.ray_rotation(centre_cam), centre_cam)
     np.testing.assert_allclose(virt[:, :2], 0.0, atol=1e-9)
     assert np.all(virt[:, 2] > 0)
     # R_ray^T maps the camera frame to the virtual one, so R_obj = R_ray^T R (independently
@@ -130,7 +131,7 @@ def test_object_centred_rotation_puts_the_centre_on_the_axis():
         ray, _ = Rotation.align_vectors([centre_cam[i] / np.linalg.norm(centre_cam[i])],
                                         [[0.0, 0.0, 1.0]])
         np.testing.assert_allclose(R_obj[i], ray.as_matrix().T @ R[i], atol=1e-9)
-    np.testing.assert_allclose(banks.camera_rotation(R_obj, centre_cam), R, atol=1e-9)
+    np.testing.assert_allclose(camera.camera_rotation(R_obj, centre_cam), R, atol=1e-9)
 
 
 def test_bank_symmetries_follow_bop():

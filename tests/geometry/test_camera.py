@@ -77,3 +77,14 @@ def test_look_at_centres_target():
     above = camera.project(camera.transform(T, (target + [0, 0, 50])[None].astype(np.float32)), K)
     assert above[0, 1] < 240
     assert np.linalg.det(np.asarray(T)[:3, :3]) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_box_center_ray_hand_case_numpy_and_jax():
+    # Box (10, 20)-(30, 40) pixel edges: centre (19.5, 29.5) in pixel-centre coordinates.
+    K = np.array([[100.0, 0, 50], [0, 200.0, 60], [0, 0, 1]])
+    box = np.array([10.0, 20.0, 30.0, 40.0])
+    want = [(19.5 - 50) / 100, (29.5 - 60) / 200, 1.0]
+    from threept_jax.geometry.camera import box_center_ray
+
+    np.testing.assert_allclose(box_center_ray(box, K), want, rtol=1e-12)
+    np.testing.assert_allclose(box_center_ray(jnp.asarray(box), jnp.asarray(K)), want, rtol=1e-6)

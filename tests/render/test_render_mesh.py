@@ -8,7 +8,8 @@ import pytest
 import trimesh
 
 from threept_jax.render import Mesh, bucket_size, decimate, load_mesh, subdivide, to_raster_mesh
-from threept_jax.render.mesh import is_closed, mesh_diameter
+from threept_jax.geometry.diameter import mesh_diameter
+from threept_jax.render.mesh import is_closed
 
 
 def _write_ply(path, vertices, faces, colors=None):

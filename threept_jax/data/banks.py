@@ -30,15 +30,16 @@ from four times its radius (a = 14.5 degrees; f = 1.74 * side).
 
 **Rotations of off-axis objects.** A template shows the object as seen by a camera looking
 straight at its centre. An object off the optical axis of a real camera is seen along the ray
-through its centre, so the template that matches its appearance is the one at
-``R_ray^T R_cam_obj`` (:func:`object_centred_rotation`), where ``R_ray`` is the smallest
-rotation that takes the optical axis (z) onto that ray: the object's rotation in a virtual
-camera with the same centre, turned to look at the object (its image axes stay as close to the
-real camera's as the turn allows). Inference goes back with :func:`camera_rotation` from the
-ray through the detected box centre. What remains is the perspective warp between the real
-image around the object and the virtual camera's view: the real image plane is tilted by the
-off-axis angle theta against the virtual one, so the object appears stretched by 1 / cos(theta)
-along the radial direction (4 % at 16 degrees off-axis, 15 % at 30 degrees).
+through its centre, so the template that matches its appearance is the one at ``R_ray^T
+R_cam_obj`` (:func:`threept_jax.geometry.camera.object_centred_rotation`), where ``R_ray`` is
+the smallest rotation that takes the optical axis (z) onto that ray: the object's rotation in a
+virtual camera with the same centre, turned to look at the object (its image axes stay as close
+to the real camera's as the turn allows). Inference goes back with
+:func:`threept_jax.geometry.camera.camera_rotation` from the ray through the detected box
+centre. What remains is the perspective warp between the real image around the object and the
+virtual camera's view: the real image plane is tilted by the off-axis angle theta against the
+virtual one, so the object appears stretched by 1 / cos(theta) along the radial direction (4 %
+at 16 degrees off-axis, 15 % at 30 degrees).
 
 **On disk** a bank is one ``.npz`` (no pickle), written atomically: the images are PNG (or
 JPEG) encoded one by one and concatenated into a byte array with offsets, so
@@ -69,11 +70,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
+from threept_jax.geometry.diameter import MIN_DIAMETER_MM
+from threept_jax.geometry.symmetry import Symmetries
 from threept_jax.data.files import atomic_write_bytes, atomic_write_json
 from threept_jax.data.records import NPY_HEADER_LOCK
 from threept_jax.geometry.symmetry import symmetry_transforms
-from threept_jax.geometry.camera import ray_rotation
+from threept_jax.geometry.camera import camera_rotation, object_centred_rotation
 
 BANK_FORMAT_VERSION = 1
 #: Default render side (pixels) and template count of the banks datagen writes and inference
@@ -92,8 +94,8 @@ BANK_SYM_DISC_STEP = 0.05
 
 __all__ = [
     "BANK_FORMAT_VERSION", "BANK_SYM_DISC_STEP", "BankFile", "DISTANCE_FACTOR", "FILL",
-    "ObjectEntry", "RenderBank", "bank_symmetries", "bounding_sphere", "camera_rotation",
-    "load_bank", "load_object_table", "object_centred_rotation", "ray_rotation",
+    "ObjectEntry", "RenderBank", "bank_symmetries", "bounding_sphere",
+    "load_bank", "load_object_table",
     "render_camera", "render_pose", "save_bank", "write_object_table",
 ]
 
@@ -141,18 +143,6 @@ def bounding_sphere(vertices: np.ndarray) -> tuple[np.ndarray, float]:
         raise ValueError(f"vertices must be [N, 3] with N >= 1, got {v.shape}")
     c = (v.min(0) + v.max(0)) / 2.0
     return c, float(np.linalg.norm(v - c, axis=1).max())
-
-
-def object_centred_rotation(R_cam_obj: np.ndarray, center_cam: np.ndarray) -> np.ndarray:
-    """R_ray^T R_cam_obj [..., 3, 3]: the rotation a bank template must have to look like an
-    object at R_cam_obj whose centre is at ``center_cam`` [..., 3] in the camera (module
-    docstring)."""
-    return np.swapaxes(ray_rotation(center_cam), -1, -2) @ np.asarray(R_cam_obj, np.float64)
-
-
-def camera_rotation(R_template: np.ndarray, center_cam: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`object_centred_rotation`: R_ray R_template [..., 3, 3]."""
-    return ray_rotation(center_cam) @ np.asarray(R_template, np.float64)
 
 
 def bank_symmetries(symmetries: Symmetries, max_sym_disc_step: float = BANK_SYM_DISC_STEP
@@ -438,7 +428,7 @@ def _parse_entry(obj_id: int, raw: Any, path: pathlib.Path) -> ObjectEntry:
     if missing:
         raise ValueError(f"{where}: missing {missing}; see threept_jax.data.banks for the format")
     diameter = float(raw["diameter"])
-    if not diameter >= 1.0:
+    if not diameter >= MIN_DIAMETER_MM:
         raise ValueError(f"{where}: diameter {diameter} looks like metres; the object table is "
                          "in millimetres")
     split = raw.get("split")

@@ -47,7 +47,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from threept_jax.data.files import atomic_write_bytes
-from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
+from threept_jax.geometry.diameter import MIN_DIAMETER_MM, mesh_diameter
+from threept_jax.geometry.symmetry import Symmetries
 from threept_jax.geometry.validate import validate_intrinsics, validate_rotation
 
 from threept_jax.data.ply import load_ply_vertices
@@ -86,8 +87,6 @@ __all__ = [
 
 POSE_CSV_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
-# A mesh whose diameter is below this is almost surely in metres (BOP meshes are in mm).
-MIN_DIAMETER_MM = 1.0
 
 
 def make_pose(R, t) -> np.ndarray:
@@ -333,19 +332,9 @@ def compute_model_info(
 ) -> ObjectModel:
     """Model info from vertices [N, 3] (mm): exact diameter (max pairwise vertex distance,
     `misc.calc_pts_diameter`) and 3D box, as `scripts/calc_model_info.py` computes them."""
-    from scipy.spatial import ConvexHull
-
     v = np.asarray(vertices, np.float64)
     lo, hi = v.min(0), v.max(0)
-    # The farthest pair of a point set lies on its convex hull.
-    try:
-        cand = v[ConvexHull(v).vertices]
-    except Exception:
-        cand = v
-    diameter = 0.0
-    for i in range(0, len(cand), 512):
-        d = np.linalg.norm(cand[i : i + 512, None] - cand[None], axis=-1).max()
-        diameter = max(diameter, float(d))
+    diameter = mesh_diameter(v)
     return ObjectModel(
         int(obj_id),
         diameter,

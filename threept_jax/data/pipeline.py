@@ -27,7 +27,7 @@ Built from picklable grain transforms (usable in multiprocess workers) and
    blur.
 
 **Rotation convention.** Target ``rotations`` are *object-centred*:
-``banks.object_centred_rotation(R_cam_obj, centre)``, the object's rotation in a virtual
+``geometry.camera.object_centred_rotation(R_cam_obj, centre)``, the object's rotation in a virtual
 camera turned to look at its bounding-sphere centre, which is how bank renders are made (see
 :mod:`threept_jax.data.banks`). Cropping does not change them: a crop keeps the camera centre
 and orientation, only K changes (returned as ``K``).
@@ -59,7 +59,8 @@ import grain
 import numpy as np
 
 from threept_jax.data import records
-from threept_jax.data.banks import BankFile, ObjectEntry, load_object_table, object_centred_rotation
+from threept_jax.data.banks import BankFile, ObjectEntry, load_object_table
+from threept_jax.geometry.camera import object_centred_rotation
 from threept_jax.geometry.symmetry import nearest_templates
 
 __all__ = [

@@ -125,3 +125,33 @@ def ray_rotation(points_cam: Array) -> Array:
     # R = I + [v]x + [v]x^2 / (1 + c); a point in front of the camera never has c = -1.
     denom = xp.maximum(1.0 + c, 1e-12)[..., None, None]
     return xp.eye(3, dtype=vx.dtype) + vx + (vx @ vx) / denom
+
+
+def object_centred_rotation(R_cam_obj: Array, center_cam: Array) -> Array:
+    """R_ray^T R_cam_obj [..., 3, 3]: the rotation a bank template (rendered by a camera looking
+    at the object's centre, ``threept_jax.data.banks``) must have to look like an object at
+    R_cam_obj whose centre is at ``center_cam`` [..., 3] in the camera. Same array rules as
+    :func:`ray_rotation`."""
+    R_ray = ray_rotation(center_cam)
+    xp = jnp if isinstance(R_ray, jax.Array) else np
+    return xp.swapaxes(R_ray, -1, -2) @ xp.asarray(R_cam_obj, R_ray.dtype)
+
+
+def camera_rotation(R_template: Array, center_cam: Array) -> Array:
+    """Inverse of :func:`object_centred_rotation`: R_ray R_template [..., 3, 3], the camera
+    rotation of a template seen along the ray through ``center_cam`` [..., 3]."""
+    R_ray = ray_rotation(center_cam)
+    xp = jnp if isinstance(R_ray, jax.Array) else np
+    return R_ray @ xp.asarray(R_template, R_ray.dtype)
+
+
+def box_center_ray(box_xyxy: Array, K: Array) -> Array:
+    """[..., 4] pixel-edge xyxy boxes, K [..., 3, 3] -> [..., 3] ray K^-1 (u, v, 1) through the
+    box centre (pixel-centre coordinates: u = (x0 + x1) / 2 - 0.5). Same array rules as
+    :func:`ray_rotation`."""
+    xp = jnp if isinstance(box_xyxy, jax.Array) or isinstance(K, jax.Array) else np
+    dtype = jnp.float32 if xp is jnp else np.float64
+    box = xp.asarray(box_xyxy, dtype)
+    uv = (box[..., :2] + box[..., 2:]) / 2 - 0.5
+    uv1 = xp.concatenate([uv, xp.ones_like(uv[..., :1])], -1)
+    return xp.linalg.solve(xp.asarray(K, dtype), uv1[..., None])[..., 0]

@@ -17,7 +17,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from threept_jax.geometry.camera import make_transform, project, ray_rotation
+from threept_jax.geometry.camera import box_center_ray, camera_rotation, make_transform, project
 from threept_jax.geometry.so3_kde import top_k_separated
 
 Array = jax.Array
@@ -96,12 +96,11 @@ def single_view_hypotheses(box_xyxy: Array, K: Array, template_scores: Array,
     Returns (T_cam_obj [K, 4, 4], scores [K], valid [K]): the top ``num_hypotheses`` templates
     at least ``min_angle_deg`` apart (3PT uses K = 8 and 45 degrees), each turned from the
     object-centred view to the camera by the rotation of the ray through the box centre
-    (``ray_rotation``), with the translation that fits the box at that rotation.
+    (``geometry.camera.camera_rotation``), with the translation that fits the box at that rotation.
     """
     idx, valid = top_k_separated(template_rotations, template_scores, num_hypotheses, min_angle_deg)
-    centre = (jnp.asarray(box_xyxy[:2]) + jnp.asarray(box_xyxy[2:])) / 2 - 0.5
-    ray = jnp.linalg.solve(jnp.asarray(K, jnp.float32), jnp.append(centre, 1.0).astype(jnp.float32))
-    R = ray_rotation(ray) @ jnp.asarray(template_rotations)[idx]
+    ray = box_center_ray(jnp.asarray(box_xyxy, jnp.float32), jnp.asarray(K, jnp.float32))
+    R = camera_rotation(jnp.asarray(template_rotations)[idx], ray)
     t = translation_from_box(jnp.broadcast_to(box_xyxy, (num_hypotheses, 4)),
                              jnp.broadcast_to(K, (num_hypotheses, 3, 3)), R, points)
     scores = jnp.where(valid, jnp.asarray(template_scores)[idx], -jnp.inf)

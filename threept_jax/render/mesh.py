@@ -26,11 +26,10 @@ from typing import Any
 
 import numpy as np
 
+from threept_jax.geometry.diameter import MAX_DIAMETER_MM, MIN_DIAMETER_MM, mesh_diameter
 from threept_jax.geometry.symmetry import Symmetries
 
 _UNIT_SCALE = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
-_MIN_DIAMETER_MM = 1.0
-_MAX_DIAMETER_MM = 5000.0
 DEFAULT_GREY = 0.7  # albedo of meshes without colours or texture
 
 
@@ -40,36 +39,15 @@ def _readonly(a: np.ndarray | None) -> np.ndarray | None:
     return a
 
 
-def mesh_diameter(vertices: np.ndarray) -> float:
-    """Largest distance between two vertices [N, 3] (the BOP definition), exact.
-
-    The farthest pair lies on the convex hull, so only hull vertices are compared.
-    """
-    v = np.asarray(vertices, np.float64)
-    if len(v) < 2:
-        return 0.0
-    try:
-        from scipy.spatial import ConvexHull
-
-        v = v[ConvexHull(v).vertices]
-    except Exception:  # noqa: BLE001  (flat or degenerate point sets have no 3-D hull)
-        pass
-    best = 0.0
-    for start in range(0, len(v), 1024):
-        d = np.linalg.norm(v[start : start + 1024, None, :] - v[None, :, :], axis=-1)
-        best = max(best, float(d.max()))
-    return best
-
-
 def _check_units(diameter: float, name: str) -> None:
-    if not (_MIN_DIAMETER_MM <= diameter <= _MAX_DIAMETER_MM):
-        if diameter < _MIN_DIAMETER_MM:
+    if not (MIN_DIAMETER_MM <= diameter <= MAX_DIAMETER_MM):
+        if diameter < MIN_DIAMETER_MM:
             hint = "looks like metres; load it with load_mesh(path, units='m') to convert to mm"
         else:
             hint = "looks like micrometres or a wrong scale; rescale it to mm before loading"
         raise ValueError(
             f"mesh {name!r} has diameter {diameter:.4g} after unit conversion, outside "
-            f"[{_MIN_DIAMETER_MM}, {_MAX_DIAMETER_MM}] mm: it {hint} "
+            f"[{MIN_DIAMETER_MM}, {MAX_DIAMETER_MM}] mm: it {hint} "
             "(units= accepts 'mm', 'cm', 'm', 'in'; meshes are never rescaled silently)"
         )
 
