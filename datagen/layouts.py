@@ -34,6 +34,8 @@ from scipy.optimize import linprog
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
+from threept_jax.geometry.rotations import random_rotations
+
 # --------------------------------------------------------------------------------------------
 # Collision shapes.
 
@@ -422,13 +424,6 @@ def choose_instances(
     return out[rng.permutation(num_instances)].astype(np.int64)
 
 
-def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
-    """[n, 3, 3] uniform random rotations (float64)."""
-    if n == 0:
-        return np.zeros((0, 3, 3))
-    return Rotation.random(n, random_state=rng).as_matrix().reshape(n, 3, 3)
-
-
 def _valid(shapes: Sequence[CollisionShape | None], mesh_index: np.ndarray) -> np.ndarray:
     mesh_index = np.asarray(mesh_index, np.int64).reshape(-1)
     if len(mesh_index) and (mesh_index.min() < 0 or mesh_index.max() >= len(shapes)):
@@ -701,7 +696,7 @@ def drop_layout(
         if bin is not None
         else (area[0] / 2, area[1] / 2)
     )
-    R0 = _random_rotations(rng, O)
+    R0 = random_rotations(rng, O)
     t0 = _spawn_column(rng, radii, half, 0.0, gap=2.0)
     T0 = np.tile(np.eye(4), (O, 1, 1))
     T0[:, :3, :3] = R0
@@ -778,7 +773,7 @@ def float_layout(
         ok = False
         for _ in range(max_tries):
             T = np.eye(4)
-            T[:3, :3] = _random_rotations(rng, 1)[0]
+            T[:3, :3] = random_rotations(rng, 1)[0]
             T[:3, 3] = c + rng.uniform(-1, 1, 3) * h
             hs = None
             ok = True

@@ -91,3 +91,14 @@ def test_jit_and_batch_shapes():
     assert q.shape == (2, 3, 4)
     np.testing.assert_allclose(jax.jit(rot.quaternion_to_matrix)(q), R, atol=2e-6)
     np.testing.assert_allclose(jnp.einsum("...ji,...jk->...ik", R, R), np.broadcast_to(np.eye(3), R.shape), atol=2e-6)
+
+
+def test_random_rotations_from_a_numpy_generator_are_rotations_and_reproducible():
+    a = rot.random_rotations(np.random.default_rng(3), (4, 2))
+    b = rot.random_rotations(np.random.default_rng(3), (4, 2))
+    assert a.shape == (4, 2, 3, 3) and a.dtype == np.float64
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(a @ np.swapaxes(a, -1, -2), np.broadcast_to(np.eye(3), a.shape),
+                               atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(a), 1.0, atol=1e-12)
+    assert rot.random_rotations(np.random.default_rng(0), 0).shape == (0, 3, 3)

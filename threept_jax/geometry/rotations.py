@@ -7,8 +7,12 @@ accept NumPy or JAX arrays.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
+import numpy as np
+from scipy.spatial.transform import Rotation
 
 Array = jax.Array
 
@@ -131,8 +135,19 @@ def project_to_so3(M: Array) -> Array:
     return (U * D[..., None, :]) @ Vt
 
 
-def random_rotations(key: Array, shape: tuple[int, ...] | int, dtype=jnp.float32) -> Array:
-    """Haar-uniform random rotations [*shape, 3, 3] (normalised Gaussian quaternions)."""
+def random_rotations(key: Array | np.random.Generator, shape: tuple[int, ...] | int,
+                     dtype=jnp.float32) -> Array | np.ndarray:
+    """Haar-uniform random rotations [*shape, 3, 3] (normalised Gaussian quaternions).
+
+    ``key`` is a JAX PRNG key (JAX array of ``dtype``) or a ``np.random.Generator`` (float64
+    NumPy, drawn as ``scipy.spatial.transform.Rotation.random`` draws them, for host code such
+    as data generation).
+    """
     shape = (shape,) if isinstance(shape, int) else tuple(shape)
+    if isinstance(key, np.random.Generator):
+        n = math.prod(shape)
+        if n == 0:
+            return np.zeros((*shape, 3, 3))
+        return Rotation.random(n, random_state=key).as_matrix().reshape(*shape, 3, 3)
     q = jax.random.normal(key, (*shape, 4), dtype=dtype)
     return quaternion_to_matrix(q)
