@@ -100,7 +100,8 @@ def _read_rgb(path) -> np.ndarray:
 def run_bop(args) -> dict:
     from threept_jax.data import bop
 
-    from infer.visualize import PoseRenderer, detection_masks, draw_detections
+    from infer.masks import PoseRenderer, detection_masks
+    from infer.visualize import draw_detections
 
     ds = bop.BopDataset(args.dataset_dir)
     models = ds.models(args.models_subdir)

@@ -23,10 +23,9 @@ import numpy as np
 from flax import nnx
 from tqdm import tqdm
 
-from threept_jax.data.banks import BANK_SIZE, BANK_TEMPLATES
+from threept_jax.data.banks import BANK_SIZE, BANK_TEMPLATES, resize_renders
 from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
 from threept_jax.data.files import atomic_savez
-from threept_jax.data.pipeline import resize_renders
 from threept_jax.models.configs import DetectorConfig
 from threept_jax.models.detector import Detector
 from threept_jax.pipeline.onboarding import render_bank

@@ -31,7 +31,7 @@ from threept_jax.geometry.triangulation import match_across_views
 from threept_jax.geometry.validate import validate_rigid
 
 from infer.detect import Detection, SceneDetector
-from infer.visualize import PoseRenderer, detection_masks
+from infer.masks import PoseRenderer, detection_masks
 
 
 @dataclasses.dataclass(frozen=True)

@@ -35,7 +35,8 @@ from flax import nnx
 
 from threept_jax.data.banks import BankFile, ObjectEntry
 from threept_jax.data.bop import Detection2D
-from threept_jax.data.pipeline import BankCache, detection_dataset, resize_renders
+from threept_jax.data.banks import resize_renders
+from threept_jax.data.pipeline import BankCache, detection_dataset
 from threept_jax.eval.coco import evaluate_coco
 from threept_jax.geometry.boxes import box_iou, nms
 from threept_jax.models.detector import boxes_to_pixels, orientation_scores, patch_scores

@@ -94,7 +94,7 @@ BANK_SYM_DISC_STEP = 0.05
 
 __all__ = [
     "BANK_FORMAT_VERSION", "BANK_SYM_DISC_STEP", "BankFile", "DISTANCE_FACTOR", "FILL",
-    "ObjectEntry", "RenderBank", "bank_symmetries", "bounding_sphere",
+    "ObjectEntry", "RenderBank", "bank_symmetries", "bounding_sphere", "resize_renders",
     "load_bank", "load_object_table",
     "render_camera", "render_pose", "save_bank", "write_object_table",
 ]
@@ -143,6 +143,14 @@ def bounding_sphere(vertices: np.ndarray) -> tuple[np.ndarray, float]:
         raise ValueError(f"vertices must be [N, 3] with N >= 1, got {v.shape}")
     c = (v.min(0) + v.max(0)) / 2.0
     return c, float(np.linalg.norm(v - c, axis=1).max())
+
+
+def resize_renders(images: np.ndarray, size: int | None) -> np.ndarray:
+    """uint8 [N, h, w, 3] -> [N, size, size, 3] (area filter when shrinking); ``None`` keeps."""
+    if size is None or images.shape[1:3] == (size, size):
+        return images
+    interp = cv2.INTER_AREA if images.shape[1] > size else cv2.INTER_LINEAR
+    return np.stack([cv2.resize(im, (size, size), interpolation=interp) for im in images])
 
 
 def bank_symmetries(symmetries: Symmetries, max_sym_disc_step: float = BANK_SYM_DISC_STEP

@@ -59,14 +59,14 @@ import grain
 import numpy as np
 
 from threept_jax.data import records
-from threept_jax.data.banks import BankFile, ObjectEntry, load_object_table
+from threept_jax.data.banks import BankFile, ObjectEntry, load_object_table, resize_renders
 from threept_jax.geometry.camera import object_centred_rotation
 from threept_jax.geometry.symmetry import nearest_templates
 
 __all__ = [
     "AttachRenders", "BankCache", "DecodeExample", "ExampleConfig", "PhotometricAugment",
     "PhotometricConfig", "SampleTile", "augment_image", "crop_transform", "detection_dataset",
-    "find_shards", "resize_renders", "warp_crop",
+    "find_shards", "warp_crop",
 ]
 
 #: Object sizes (pixels on a 512 tile) that training puts objects at (DESIGN.md section 1.1).
@@ -370,14 +370,6 @@ class SampleTile(grain.transforms.RandomMap):
             "scene_id": np.int32(ex["scene_id"]),
             "im_id": np.int32(ex["im_id"]),
         }
-
-
-def resize_renders(images: np.ndarray, size: int | None) -> np.ndarray:
-    """uint8 [N, h, w, 3] -> [N, size, size, 3] (area filter when shrinking); ``None`` keeps."""
-    if size is None or images.shape[1:3] == (size, size):
-        return images
-    interp = cv2.INTER_AREA if images.shape[1] > size else cv2.INTER_LINEAR
-    return np.stack([cv2.resize(im, (size, size), interpolation=interp) for im in images])
 
 
 class AttachRenders(grain.transforms.RandomMap):
