@@ -11,7 +11,6 @@ image size, so repeated calls on a camera's images never recompile.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Sequence
 
 import jax
@@ -84,14 +83,20 @@ class SceneDetector:
         self._bank = jnp.asarray(np.stack([x.template_bank for x in self.objects]))
         self._points = jnp.asarray(np.stack([x.points for x in self.objects]))
         self._rotations = jnp.asarray(self.objects[0].template_rotations)
+        self._steps: dict[tuple[int, int], object] = {}
 
     def layout(self, image_hw: tuple[int, int]) -> pns.TileLayout:
         tile = self.config.image_size
         scales = self.scales or pns.geometric_scales(image_hw, tile, self.num_scales)
         return pns.tile_layout(image_hw, tile, scales)
 
-    @functools.cache
     def _compiled(self, image_hw: tuple[int, int]):
+        """The jitted detection function for one image size, built once per detector."""
+        if image_hw not in self._steps:
+            self._steps[image_hw] = self._build(image_hw)
+        return self._steps[image_hw]
+
+    def _build(self, image_hw: tuple[int, int]):
         layout = self.layout(image_hw)
         graphdef, cand, max_det = self._graphdef, self.candidates, self.max_detections
         k, min_angle = self.num_hypotheses, self.min_angle_deg

@@ -24,7 +24,7 @@ import numpy as np
 from array_record.python.array_record_module import ArrayRecordWriter
 
 from threept_jax.data import banks, records
-from threept_jax.data.bop import ContinuousSymmetry, Symmetries
+from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
 from threept_jax.geometry.grids import prior_view_rotations, super_fibonacci_rotations
 
 SPRITE = 64

@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from threept_jax.data import bop
+from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.data.bop_synthetic import SyntheticInstance, write_synthetic_dataset
 from threept_jax.data.ply import load_ply_mesh, load_ply_vertices
 
@@ -151,7 +152,7 @@ def test_opening_is_lazy(mini, monkeypatch):
     def boom(*a, **k):
         raise AssertionError("an image was read")
 
-    monkeypatch.setattr(bop, "_read_image", boom)
+    monkeypatch.setattr(bop.reader, "_read_image", boom)
     ds = bop.BopDataset(mini[0])
     sc = ds.split("test").scene(1)
     assert len(sc.gt[0]) == 3 and sc.gt_info[0][0].visib_fract == 1.0
@@ -296,7 +297,7 @@ def test_validation_errors(tmp_path, mini):
     with pytest.raises(ValueError, match="focal lengths must be positive"):
         bop.Camera(np.diag([-1.0, 1.0, 1.0]))
     with pytest.raises(ValueError, match="9 values"):
-        bop.validate_intrinsics([1, 2, 3])
+        validate_intrinsics([1, 2, 3])
     with pytest.raises(FileNotFoundError, match="does not exist"):
         bop.BopDataset(tmp_path / "nope")
     with pytest.raises(FileNotFoundError, match="no models_info.json"):

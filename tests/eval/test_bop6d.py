@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from threept_jax.data import bop
+from threept_jax.data.ply import load_ply_vertices
 from threept_jax.data.bop_synthetic import SyntheticInstance, write_synthetic_dataset
 from threept_jax.geometry.symmetry import Symmetries
 from threept_jax.eval.bop6d import ImageGt, average_precision_101, evaluate_poses
@@ -226,7 +227,7 @@ def _reference_toolkit(root, csv_path, max_per_image=100):
     infos = {
         int(k): v for k, v in json.loads((root / "models" / "models_info.json").read_text()).items()
     }
-    pts = {o: bop.load_ply_vertices(root / "models" / f"obj_{o:06d}.ply") for o in infos}
+    pts = {o: load_ply_vertices(root / "models" / f"obj_{o:06d}.ply") for o in infos}
     syms = {o: _ref_syms(v) for o, v in infos.items()}
     width = json.loads((root / "camera.json").read_text())["width"]
     rows = []
