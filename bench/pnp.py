@@ -8,7 +8,15 @@ refiner, from an initial pose 10 degrees and 2% of the depth off. OpenCV solves 
 part (view 0) of the same problems with cv2.solvePnP(SOLVEPNP_SQPNP) in a Python loop. Both are
 timed warm, best of ``--repeats``; the compile (cold) time is reported separately.
 
+A second part measures robustness against OpenCV RANSAC on the same problems: ``--acc-batch``
+fresh problems with 1 px noise and ``--acc-outliers`` (default 20%) gross outliers, solved by
+``solve_pnp`` self-initialised on view 0 alone (the like-for-like single-view comparison) and on
+all views, and by ``cv2.solvePnPRansac`` (SQPnP, 500 iterations, 3 px, confidence 0.999, the
+settings of tests/geometry/test_pnp.py) on view 0. It prints the median and 99th-percentile
+rotation and translation errors and the ratio of our median to RANSAC's.
+
     python bench/pnp.py [--batch 1024 --views 3 --points 200 --repeats 5 --outliers 0.0]
+                        [--acc-batch 512 --acc-outliers 0.2]
 """
 
 from __future__ import annotations
@@ -70,11 +78,17 @@ def make_problems(rng: np.random.Generator, batch: int, views: int, points: int,
     return f32(X), f32(uv), f32(Ks), f32(T_cw), T_wo, f32(init)
 
 
-def errors(T: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
-    """Median rotation error (degrees) and translation error (mm) over the batch."""
+def pose_errors(T: np.ndarray, T_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-problem rotation error (degrees) and translation error (mm)."""
     rel = np.einsum("bji,bjk->bik", T[:, :3, :3], T_gt[:, :3, :3])
     rot = np.degrees(Rotation.from_matrix(rel).magnitude())
     trans = np.linalg.norm(T[:, :3, 3] - T_gt[:, :3, 3], axis=-1)
+    return rot, trans
+
+
+def errors(T: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
+    """Median rotation error (degrees) and translation error (mm) over the batch."""
+    rot, trans = pose_errors(T, T_gt)
     return float(np.median(rot)), float(np.median(trans))
 
 
@@ -98,6 +112,10 @@ def main():
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--outliers", type=float, default=0.0, help="fraction of gross outliers")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--acc-batch", type=int, default=512,
+                        help="problems of the accuracy comparison with OpenCV RANSAC (0 skips it)")
+    parser.add_argument("--acc-outliers", type=float, default=0.2,
+                        help="fraction of gross outliers in the accuracy comparison")
     a = parser.parse_args()
 
     affinity = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
@@ -144,6 +162,62 @@ def main():
     for name, rate, warm, cold, rot, trans in rows:
         print(f"{name:34s} {rate:11.0f} {warm:8.3f} {cold:8.2f} {cv_rate / rate:9.2f} "
               f"{rot:8.3f} {trans:9.3f}")
+
+    if a.acc_batch:
+        accuracy_vs_ransac(a)
+
+
+def accuracy_vs_ransac(a) -> None:
+    """Median errors of solve_pnp (view 0 alone, and all views) against cv2.solvePnPRansac."""
+    print(f"\naccuracy vs OpenCV RANSAC: {a.acc_batch} new problems, {a.views} views x {a.points} "
+          f"points, 1 px noise, {a.acc_outliers:.0%} gross outliers, both self-initialised")
+    X, uv, K, T_cw, T_wo, _ = make_problems(np.random.default_rng(a.seed + 1), a.acc_batch,
+                                            a.views, a.points, a.acc_outliers)
+    solve = jax.jit(jax.vmap(solve_pnp))
+    world_from_cam0 = np.linalg.inv(T_cw[:, 0].astype(np.float64))
+    rows = []
+    # Single view: view 0 in its own camera frame (T_cam_world = identity), lifted to the world.
+    args1 = [jnp.asarray(v) for v in (X[:, :1], uv[:, :1], K[:, :1],
+                                      np.broadcast_to(np.eye(4, dtype=np.float32),
+                                                      (a.acc_batch, 1, 4, 4)),
+                                      np.ones(X[:, :1].shape[:3], np.float32))]
+    (T1, info1), cold1, warm1 = time_jax(solve, args1, 1)
+    T1 = world_from_cam0 @ np.asarray(T1, np.float64)
+    rows.append(("solve_pnp, view 0 only", T1, cold1, warm1,
+                 float(np.mean(np.asarray(info1["converged"])))))
+    argsv = [jnp.asarray(v) for v in (X, uv, K, T_cw, np.ones(X.shape[:3], np.float32))]
+    (Tv, infov), coldv, warmv = time_jax(solve, argsv, 1)
+    rows.append((f"solve_pnp, {a.views} views", np.asarray(Tv, np.float64), coldv, warmv,
+                 float(np.mean(np.asarray(infov["converged"])))))
+    cv2.setRNGSeed(0)
+    K0 = np.asarray(K[0, 0], np.float64)
+    T_cv, failed = np.tile(np.eye(4), (a.acc_batch, 1, 1)), 0
+    t0 = time.perf_counter()
+    for b in range(a.acc_batch):
+        ok, rvec, tvec, _ = cv2.solvePnPRansac(
+            X[b, 0].astype(np.float64), uv[b, 0].astype(np.float64), K0, None,
+            iterationsCount=500, reprojectionError=3.0, confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
+        failed += not ok
+        T_cam = np.eye(4)  # a failure counts as the identity pose (a large error)
+        if ok:
+            T_cam[:3, :3], T_cam[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+        T_cv[b] = world_from_cam0[b] @ T_cam
+    cv_time = time.perf_counter() - t0
+    rows.append(("cv2.solvePnPRansac, view 0 only", T_cv, 0.0, cv_time, 1 - failed / a.acc_batch))
+
+    rot_cv, trans_cv = (float(np.median(e)) for e in pose_errors(T_cv, T_wo))
+    print(f"{'method':34s} {'rot deg':>8s} {'p99':>7s} {'trans mm':>9s} {'p99':>7s} "
+          f"{'rot/RANSAC':>10s} {'trans/RANSAC':>12s} {'>5deg':>6s} {'ok':>6s} {'warm s':>7s} "
+          f"{'cold s':>7s}")
+    for name, T, cold, warm, ok in rows:
+        rot, trans = pose_errors(T, T_wo)
+        print(f"{name:34s} {np.median(rot):8.3f} {np.percentile(rot, 99):7.2f} "
+              f"{np.median(trans):9.3f} {np.percentile(trans, 99):7.1f} "
+              f"{np.median(rot) / rot_cv:10.2f} {np.median(trans) / trans_cv:12.2f} "
+              f"{int(np.sum(rot > 5.0)):6d} {ok:6.1%} {warm:7.3f} {cold:7.2f}")
+    print("(rot/trans: medians; >5deg: problems with a rotation error above 5 degrees; ok: share "
+          "converged for solve_pnp, share returning a pose for RANSAC; warm: one run over the "
+          "whole batch, RANSAC as a Python loop)")
 
 
 if __name__ == "__main__":

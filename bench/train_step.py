@@ -177,7 +177,7 @@ def main() -> None:
         line = (f"{v}: batch {r['batch']} ({r['tile']} px tiles, {r['render']} px renders, "
                 f"{r['templates']} templates, {r['dtype']}): cold compile {r['compile_s']:.1f} s, "
                 f"first step {r['first_s']:.2f} s; warm step {r['step_s'] * 1e3:.1f} ms, "
-                f"{r['examples_per_s']:.1f} examples/s; {flops / 1e9:.1f} GFLOP/step ({src}; "
+                f"{r['examples_per_s']:.3g} examples/s; {flops / 1e9:.1f} GFLOP/step ({src}; "
                 f"analytic ViT count {r['analytic'] / 1e9:.1f}), {achieved / 1e9:.1f} GFLOP/s "
                 f"= {achieved / ref:.2f} x the matmul reference")
         peak = next((p for k, p in PEAK_BF16.items() if k in dev.device_kind), None)
