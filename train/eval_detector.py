@@ -1,7 +1,7 @@
 """Periodic evaluation of 3PT-D on held-out tiles (val split: meshes training never saw).
 
 Each evaluation example is one tile of a val record queried with one object (the same
-:class:`~threept_jax.data.pipeline.SampleTile` as training, with its own fixed seed, no
+:class:`~threept_jax.data.detector_input.SampleTile` as training, with its own fixed seed, no
 photometric augmentation, and negative queries at the training rate), so the set is the
 same at every evaluation. For each val object the prior tokens and the template bank
 (``eval.num_templates`` templates of its render bank, all by default) are embedded once per
@@ -36,7 +36,7 @@ from flax import nnx
 from threept_jax.data.banks import BankFile, ObjectEntry
 from threept_jax.data.bop import Detection2D
 from threept_jax.data.banks import resize_renders
-from threept_jax.data.pipeline import BankCache, detection_dataset
+from threept_jax.data.detector_input import BankCache, detection_dataset
 from threept_jax.eval.coco import evaluate_coco
 from threept_jax.geometry.boxes import box_iou, nms
 from threept_jax.models.detector import boxes_to_pixels, orientation_scores, patch_scores

@@ -3,7 +3,7 @@
 ``train(config, workdir)`` (what ``train/launch.py`` runs) builds a :class:`DetectorTrainer`
 and runs it to ``config.total_steps``:
 
-* **Input** (:mod:`threept_jax.data.pipeline`): grain ``MapDataset`` over the train shards,
+* **Input** (:mod:`threept_jax.data.detector_input`): grain ``MapDataset`` over the train shards,
   sliced per process, shuffled, repeated, one tile per example, batched per process;
   ``to_iter_dataset`` with read threads and, with ``data.num_workers > 0``, multiprocess
   prefetch. Each process's batch becomes its slice of global arrays sharded over the mesh.
@@ -47,7 +47,7 @@ from jax.sharding import PartitionSpec as P
 
 from threept_jax.data.files import atomic_write_bytes, atomic_write_json
 from threept_jax.data.banks import BankFile, ObjectEntry, load_object_table
-from threept_jax.data.pipeline import (
+from threept_jax.data.detector_input import (
     ExampleConfig,
     PhotometricConfig,
     detection_dataset,
@@ -257,7 +257,7 @@ def check_finite(step: int, metrics: Mapping[str, float]) -> None:
         f"non-finite training metrics at step {step}: {terms}. The run stopped before saving "
         "this state; the last checkpoint is intact. Try a lower --config.optim.learning_rate, a "
         "tighter --config.optim.grad_clip_norm or a longer warmup, and check the data (boxes "
-        "inside the tiles, renders not blank) by iterating threept_jax.data.pipeline."
+        "inside the tiles, renders not blank) by iterating threept_jax.data.detector_input."
         "detection_dataset by hand.")
 
 

@@ -1,4 +1,4 @@
-"""Grain input pipeline of 3PT-D: one example = one tile queried with one object.
+"""The detector's input: a grain pipeline of 3PT-D examples, one tile queried with one object.
 
 Built from picklable grain transforms (usable in multiprocess workers) and
 :func:`detection_dataset`, which chains them over the ArrayRecord shards of a records folder
