@@ -26,7 +26,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from threept_jax.data import bop  # noqa: E402
-from threept_jax.data.bop_synthetic import SyntheticInstance, write_synthetic_dataset  # noqa: E402
+from threept_jax.testing.bop_synthetic import SyntheticInstance, write_synthetic_dataset  # noqa: E402
 from threept_jax.eval.bop_eval import evaluate_pose_results  # noqa: E402
 from threept_jax.eval.symmetry import symmetry_transforms  # noqa: E402
 

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from threept_jax.data import bop
 from threept_jax.data.ply import load_ply_vertices
-from threept_jax.data.bop_synthetic import SyntheticInstance, write_synthetic_dataset
+from threept_jax.testing.bop_synthetic import SyntheticInstance, write_synthetic_dataset
 from threept_jax.geometry.symmetry import Symmetries
 from threept_jax.eval.bop6d import ImageGt, average_precision_101, evaluate_poses
 from threept_jax.eval.bop_eval import evaluate_pose_results
