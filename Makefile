@@ -14,7 +14,7 @@ test: $(STAMP)
 	$(PY) -m pytest -n 2 -q tests
 
 demo: $(STAMP)
-	$(PY) -m infer.demo
+	$(PY) -m demo
 
 bench: $(STAMP)
 	for f in bench/*.py; do $(PY) $$f || exit 1; done

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
+from infer.onboarding import OnboardedObject
 from threept_jax.geometry.boxes import nms
 from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.models.configs import DetectorConfig
@@ -25,7 +26,6 @@ from threept_jax.models.detector import Detector, orientation_scores, patch_scor
 from threept_jax.pipeline import pan_and_scan as pns
 from threept_jax.pipeline.object_generation import single_view_hypotheses
 
-from infer.onboarding import OnboardedObject
 
 @dataclasses.dataclass(frozen=True)
 class Detection:

@@ -7,10 +7,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from threept_jax.render import Renderer
-
 from infer.detect import Detection
 from infer.onboarding import OnboardedObject
+from threept_jax.render import Renderer
 
 
 class PoseRenderer:

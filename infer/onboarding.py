@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import io
 import json
 import os
 import pathlib
@@ -24,7 +23,6 @@ from flax import nnx
 from tqdm import tqdm
 
 from threept_jax.data.banks import BANK_SIZE, BANK_TEMPLATES, resize_renders
-from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
 from threept_jax.data.files import atomic_savez
 from threept_jax.models.configs import DetectorConfig
 from threept_jax.models.detector import Detector

@@ -1,4 +1,4 @@
-"""``run_scene``: detected instances with poses from one or several calibrated views.
+"""``find_instances``: detected instances with poses from one or several calibrated views.
 
 Single view: every detection is an instance; its pose is the best of its hypotheses (top
 template turned by the box ray, translation fitted to the box).
@@ -24,14 +24,17 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from threept_jax.geometry.camera import box_center_ray, camera_rotation, invert
-from threept_jax.geometry.so3_kde import (kappa_from_std_deg, kde_mean_shift, top_k_separated,
-                                          vmf_kde)
-from threept_jax.geometry.triangulation import match_across_views
-from threept_jax.geometry.validate import validate_rigid
-
 from infer.detect import Detection, SceneDetector
 from infer.masks import PoseRenderer, detection_masks
+from threept_jax.geometry.camera import box_center_ray, camera_rotation, invert
+from threept_jax.geometry.so3_kde import (
+    kappa_from_std_deg,
+    kde_mean_shift,
+    top_k_separated,
+    vmf_kde,
+)
+from threept_jax.geometry.triangulation import match_across_views
+from threept_jax.geometry.validate import validate_rigid
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,7 +63,7 @@ class Instance:
 def _check_views(images, Ks, T_cam_world):
     V = len(images)
     if V == 0:
-        raise ValueError("run_scene needs at least one image")
+        raise ValueError("a scene needs at least one image")
     if len(Ks) != V:
         raise ValueError(f"{V} images but {len(Ks)} intrinsics: give one K per view")
     if T_cam_world is None:
@@ -124,9 +127,10 @@ def fuse_views(detections: Sequence[Sequence[Detection]], Ks: np.ndarray, T_cam_
     return out
 
 
-def run_scene(detector: SceneDetector, images: Sequence[np.ndarray], Ks: Sequence[np.ndarray],
-              T_cam_world: np.ndarray | None = None, *, with_masks: bool = True,
-              min_views: int = 3, renderer: PoseRenderer | None = None) -> list[Instance]:
+def find_instances(detector: SceneDetector, images: Sequence[np.ndarray],
+                   Ks: Sequence[np.ndarray], T_cam_world: np.ndarray | None = None, *,
+                   with_masks: bool = True, min_views: int = 3,
+                   renderer: PoseRenderer | None = None) -> list[Instance]:
     """Instances in a scene seen by one or several calibrated RGB views.
 
     Args:

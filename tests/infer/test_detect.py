@@ -10,7 +10,7 @@ from flax import nnx
 from infer.detect import SceneDetector
 from threept_jax.geometry.validate import validate_intrinsics
 from infer.onboarding import Onboarder
-from infer.scene import run_scene
+from infer.scene import find_instances
 from threept_jax.models.configs import DetectorConfig
 from threept_jax.models.detector import Detector
 from threept_jax.render import Mesh
@@ -80,7 +80,7 @@ def test_run_scene_single_view_masks(pipeline):
     det = SceneDetector(model, cfg, objects, num_scales=1, score_threshold=0.0, max_detections=3)
     image = np.full((64, 64, 3), 128, np.uint8)
     K = np.array([[80.0, 0, 31.5], [0, 80.0, 31.5], [0, 0, 1]])
-    inst = run_scene(det, [image], [K])
+    inst = find_instances(det, [image], [K])
     assert len(inst) == 3
     union = np.zeros((64, 64), int)
     for x in inst:
@@ -102,6 +102,31 @@ def test_bad_inputs_name_the_problem(pipeline):
     with pytest.raises(ValueError, match="image size"):
         validate_intrinsics(np.array([[90.0, 0, 640], [0, 90, 480], [0, 0, 1]]), image_hw=(64, 64))
     with pytest.raises(ValueError, match="T_cam_world"):
-        run_scene(det, [image, image], [np.eye(3), np.eye(3)])
+        find_instances(det, [image, image], [np.eye(3), np.eye(3)])
     with pytest.raises(ValueError, match="no objects"):
         SceneDetector(model, cfg, [])
+
+
+def test_public_api_runs_the_stages_and_reuses_compiled_detectors(pipeline):
+    import infer
+
+    model, cfg, objects, _, cache = pipeline
+    onboarder = Onboarder(model, cfg, "untrained@0", cache_dir=cache, num_templates=48,
+                          bank_size=32)
+    models = infer.Models(model, cfg, 0, onboarder)
+    meshes = {1: _box_mesh((80, 40, 20), "plate"), 2: _box_mesh((30, 30, 90), "post")}
+    image = np.full((64, 64, 3), 128, np.uint8)
+    K = np.array([[80.0, 0, 31.5], [0, 80.0, 31.5], [0, 0, 1]])
+    options = dict(num_scales=1, score_threshold=0.0, max_detections=3)
+    got = infer.run_scene([image], [infer.Camera(K)], meshes, models, **options)
+    ref = find_instances(SceneDetector(model, cfg, objects, **options), [image], [K])
+    assert [x.obj_id for x in got] == [x.obj_id for x in ref]
+    for a, b in zip(got, ref):
+        np.testing.assert_allclose(a.T_world_obj, b.T_world_obj, rtol=1e-5, atol=1e-3)
+        np.testing.assert_array_equal(a.masks[0], b.masks[0])
+    # Same objects and options: the same SceneDetector (and its compiled function) is reused.
+    infer.run_scene([image], [K], objects, models, **options)
+    assert len(models._scene_detectors) == 1
+    rig = [infer.Camera(K, T_cam_world=np.eye(4)), infer.Camera(K)]
+    with pytest.raises(ValueError, match="every camera carries T_cam_world"):
+        infer.run_scene([image, image], rig, objects, models, **options)

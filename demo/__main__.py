@@ -1,4 +1,4 @@
-"""The main job on built-in defaults: ``python -m infer.demo`` (what ``make demo`` runs).
+"""The main job on built-in defaults: ``python -m demo`` (what ``make demo`` runs).
 
 The whole pipeline on a CPU in about six minutes (2 cores), with nothing downloaded:
 
@@ -75,7 +75,7 @@ def train_config(records: pathlib.Path, steps: int):
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    p = argparse.ArgumentParser(prog="python -m infer.demo", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m demo", description=__doc__.split("\n")[0])
     p.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/demo"))
     p.add_argument("--meshes", default="procedural:24",
                    help="mesh sources for datagen.generate (default: 24 procedural meshes)")
@@ -112,7 +112,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     _done(start)
 
     start = _stage(f"4/4 inference + BOP evaluation on held-out objects -> {out / 'results'}")
-    from infer.__main__ import main as infer_main
+    from infer.cli import main as infer_main
 
     result = infer_main(["bop", "--workdir", str(workdir), "--step", "latest",
                          "--dataset-dir", str(data / "val"), "--split", "val_pbr",

@@ -1,0 +1,118 @@
+"""The public inference API: load the models once, then ``run_scene`` on any number of scenes.
+
+    import infer
+    models = infer.load("runs/demo/train")                 # a training run directory
+    objects = models.onboard({1: "bracket.ply"}, units="mm")  # cached on disk per mesh
+    for image, K in camera_stream:
+        instances = infer.run_scene([image], [K], objects, models)
+
+``run_scene`` takes one view or several (then each camera is a ``Camera`` with ``T_cam_world``)
+and returns :class:`infer.scene.Instance` records (object id, pose ``T_world_obj``, score,
+hypotheses, per-view boxes and masks). The stages stay callable on their own:
+:class:`infer.onboarding.Onboarder`, :class:`infer.detect.SceneDetector` (detection and
+single-view object generation), :func:`infer.scene.find_instances` (multi-view fusion and
+masks).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pathlib
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from infer.checkpoint import load_detector
+from infer.detect import SceneDetector
+from infer.onboarding import OnboardedObject, Onboarder
+from infer.scene import Instance, find_instances
+from threept_jax.data.banks import BANK_TEMPLATES
+from threept_jax.data.bop import Camera
+from threept_jax.models.configs import DetectorConfig
+from threept_jax.models.detector import Detector
+from threept_jax.render import Mesh
+
+DEFAULT_CACHE = pathlib.Path(os.environ.get("THREEPT_CACHE", "~/.cache/threept_jax")).expanduser()
+
+__all__ = ["Camera", "Models", "load", "run_scene", "DEFAULT_CACHE"]
+
+
+@dataclasses.dataclass
+class Models:
+    """The trained networks of a run, loaded once, and what is built from them per object set.
+
+    Attributes:
+      detector: the 3PT-D network; config: its ``DetectorConfig``; step: the checkpoint step.
+      onboarder: turns meshes into :class:`OnboardedObject` (cached on disk under the model).
+    """
+
+    detector: Detector
+    config: DetectorConfig
+    step: int
+    onboarder: Onboarder
+    _scene_detectors: dict = dataclasses.field(default_factory=dict, repr=False)
+
+    def onboard(self, meshes: Mapping[int, str | os.PathLike | Mesh], units: str = "mm"
+                ) -> list[OnboardedObject]:
+        """Onboard ``{obj_id: mesh file or Mesh}`` (mesh units checked on load)."""
+        return self.onboarder.onboard_all(dict(meshes), units=units)
+
+    def scene_detector(self, objects: Sequence[OnboardedObject], **options: Any) -> SceneDetector:
+        """The :class:`SceneDetector` of these objects and options, built once and reused, so
+        its compiled functions (one per image size) survive across calls."""
+        key = (tuple(o.obj_id for o in objects), tuple(sorted(options.items())))
+        if key not in self._scene_detectors:
+            self._scene_detectors[key] = SceneDetector(self.detector, self.config, objects,
+                                                       **options)
+        return self._scene_detectors[key]
+
+
+def load(workdir, step: int | str = "best", *, cache_dir=DEFAULT_CACHE,
+         num_templates: int = BANK_TEMPLATES) -> Models:
+    """Load a training run's detector (``step``: ``"best"``, ``"latest"`` or a number) and an
+    onboarder whose cache lives under ``cache_dir/onboarding`` (None: no disk cache)."""
+    model, cfg, step = load_detector(workdir, step)
+    model_id = f"{pathlib.Path(workdir).resolve()}@{step}"
+    cache = None if cache_dir is None else pathlib.Path(cache_dir) / "onboarding"
+    return Models(model, cfg, step, Onboarder(model, cfg, model_id, cache_dir=cache,
+                                              num_templates=num_templates))
+
+
+def _views(cameras: Sequence[Camera | np.ndarray]) -> tuple[list[np.ndarray], np.ndarray | None]:
+    """Ks [V] and T_cam_world [V, 4, 4] (None when no camera carries one)."""
+    cams = [c if isinstance(c, Camera) else Camera(np.asarray(c)) for c in cameras]
+    Ts = [c.T_cam_world for c in cams]
+    if all(t is None for t in Ts):
+        return [c.K for c in cams], None
+    if any(t is None for t in Ts):
+        raise ValueError("either every camera carries T_cam_world (several views of one rig) or "
+                         "none does (one view)")
+    return [c.K for c in cams], np.stack(Ts).astype(np.float32)
+
+
+def run_scene(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarray],
+              objects: Sequence[OnboardedObject] | Mapping[int, str | os.PathLike | Mesh],
+              models: Models, *, units: str = "mm", with_masks: bool = True,
+              min_views: int = 3, **detector_options: Any) -> list[Instance]:
+    """Every instance of the objects in a scene seen by one or several calibrated RGB views.
+
+    Args:
+      images: V uint8 RGB images [H, W, 3].
+      cameras: V cameras: a ``Camera`` (K [3, 3] in pixels of that image, and for several
+        views ``T_cam_world`` [4, 4], world -> camera, mm), or a bare K for a single view.
+      objects: onboarded objects, or ``{obj_id: mesh}`` to onboard (``units`` of the meshes).
+      models: from :func:`load`.
+      with_masks, min_views: see :func:`infer.scene.find_instances`.
+      detector_options: :class:`SceneDetector` options (``num_scales``, ``score_threshold``,
+        ``max_detections``, ...).
+
+    Returns instances, best first.
+    """
+    if isinstance(objects, Mapping):
+        objects = models.onboard(objects, units=units)
+    Ks, T_cam_world = _views(cameras)
+    detector = models.scene_detector(list(objects), **detector_options)
+    return find_instances(detector, images, Ks, T_cam_world, with_masks=with_masks,
+                          min_views=min_views)
