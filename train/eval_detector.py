@@ -40,6 +40,7 @@ from threept_jax.eval.coco import evaluate_coco
 from threept_jax.geometry.boxes import box_iou, nms
 from threept_jax.models.detector import boxes_to_pixels, orientation_scores, patch_scores
 from train import sharding
+from train.run_config import example_config, model_config
 
 #: Eval batch fields sent to the device (and returned, so hosts see them in global order).
 EVAL_FIELDS = ("image", "obj_index", "boxes", "mask", "ignore", "rotations", "valid")
@@ -78,8 +79,6 @@ class DetectorEvaluator:
 
     def __init__(self, config: ml_collections.ConfigDict, graphdef: nnx.GraphDef,
                  mesh: jax.sharding.Mesh, table: Mapping[int, ObjectEntry]):
-        from train.trainer_detector import example_config
-
         self.config = config
         self.graphdef = graphdef
         self.mesh = mesh
@@ -93,7 +92,9 @@ class DetectorEvaluator:
         # collective); rows past its share of num_examples are marked invalid.
         self.local_examples = -(-self.num_examples // jax.process_count())
         self.num_batches = -(-self.local_examples // self.local_batch)
-        self.tile = int(config.model.image_size)
+        model_cfg = model_config(config)
+        self.tile = int(model_cfg.image_size)
+        self.render_size = int(model_cfg.render_size)
         ids = [k for k, v in table.items() if v.split in (None, "val")]
         self.obj_ids = np.asarray(sorted(ids), np.int64)
         self.obj_index = {int(o): i for i, o in enumerate(self.obj_ids)}
@@ -181,7 +182,7 @@ class DetectorEvaluator:
 
     def _object_banks(self, params):
         priors, banks = [], []
-        size = self.config.model.render_size
+        size = self.render_size
         for o in self.obj_ids:
             bank: BankFile = self.banks.get(int(o))
             p = resize_renders(bank.priors(), size)[None]

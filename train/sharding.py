@@ -27,11 +27,14 @@ BATCH_AXES = ("data", "fsdp")
 def maybe_initialize_distributed(mode: Any = "auto") -> bool:
     """Call ``jax.distributed.initialize()`` when launched on several hosts.
 
-    ``mode`` True/False forces it; ``"auto"`` initialises when the environment names a
-    coordinator (``JAX_COORDINATOR_ADDRESS``) or a multi-task SLURM / Open MPI job, the
-    launchers ``jax.distributed.initialize()`` detects by itself (Cloud TPU pods need
+    ``mode`` True/False (or the strings ``"true"``/``"false"``, as ``--config.distributed=True``
+    gives them) forces it; ``"auto"`` initialises when the environment names a coordinator
+    (``JAX_COORDINATOR_ADDRESS``) or a multi-task SLURM / Open MPI job, the launchers
+    ``jax.distributed.initialize()`` detects by itself (Cloud TPU pods need
     ``--config.distributed=True``). Returns whether it initialised.
     """
+    if isinstance(mode, str) and mode.lower() in ("true", "false"):
+        mode = mode.lower() == "true"
     if isinstance(mode, str):
         if mode != "auto":
             raise ValueError(f"distributed must be 'auto', True or False, got {mode!r}")

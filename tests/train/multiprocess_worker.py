@@ -1,0 +1,52 @@
+"""One of several CPU processes of a distributed training run (test_cluster.py starts them).
+
+``python multiprocess_worker.py PORT PROCESS_ID NUM_PROCESSES CONFIG_JSON WORKDIR OUT_NPZ``:
+joins the job through ``jax.distributed.initialize`` (coordinator 127.0.0.1:PORT, gloo
+collectives, one CPU device per process), trains steps 1 and 2 by hand, saves a checkpoint,
+builds a second trainer from the workdir (a restore) and runs it to ``total_steps`` (3) with
+``DetectorTrainer.run``. Writes this process's batches (its slice of each global batch) and the
+losses of the three steps to OUT_NPZ.
+"""
+
+import json
+import os
+import sys
+
+os.environ["JAX_PLATFORMS"] = "cpu"
+
+import jax  # noqa: E402
+import ml_collections  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def main(port, process_id, num_processes, config_json, workdir, out):
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.config.update("jax_num_cpu_devices", 1)
+    jax.distributed.initialize(f"127.0.0.1:{port}", num_processes=int(num_processes),
+                               process_id=int(process_id), initialization_timeout=60)
+    from train import trainer_detector as td
+
+    with open(config_json) as f:
+        config = ml_collections.ConfigDict(json.load(f))
+    assert jax.process_count() == int(num_processes) and len(jax.devices()) == jax.process_count()
+    record = {}
+    first = td.DetectorTrainer(config, workdir)
+    for step in (1, 2):
+        batch = first.next_batch()
+        loss = first.train_step(batch)["loss"]
+        record[step] = (batch, float(jax.device_get(loss)))
+    first.save()
+    first.close()
+    resumed = td.DetectorTrainer(config, workdir)
+    assert resumed.start_step == 2, resumed.start_step
+    resumed.run(hooks=[lambda step, batch, metrics: record.__setitem__(
+        step, ({k: np.copy(v) for k, v in batch.items()}, metrics["loss"]))])
+    arrays = {f"step{s}/{k}": np.asarray(v) for s, (b, _) in record.items()
+              for k, v in b.items() if k in td.STEP_FIELDS}
+    arrays["losses"] = np.array([record[s][1] for s in (1, 2, 3)])
+    np.savez(out, **arrays)
+    jax.distributed.shutdown()
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:])
