@@ -30,14 +30,15 @@ def main(port, process_id, num_processes, config_json, workdir, out):
         config = ml_collections.ConfigDict(json.load(f))
     assert jax.process_count() == int(num_processes) and len(jax.devices()) == jax.process_count()
     record = {}
-    first = td.DetectorTrainer(config, workdir)
+    cache = td.StepCache()  # the restored trainer reuses the first one's compiled step
+    first = td.DetectorTrainer(config, workdir, step_cache=cache)
     for step in (1, 2):
         batch = first.next_batch()
         loss = first.train_step(batch)["loss"]
         record[step] = (batch, float(jax.device_get(loss)))
     first.save()
     first.close()
-    resumed = td.DetectorTrainer(config, workdir)
+    resumed = td.DetectorTrainer(config, workdir, step_cache=cache)
     assert resumed.start_step == 2, resumed.start_step
     resumed.run(hooks=[lambda step, batch, metrics: record.__setitem__(
         step, ({k: np.copy(v) for k, v in batch.items()}, metrics["loss"]))])
