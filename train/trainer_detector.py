@@ -18,8 +18,12 @@ and runs it to ``config.total_steps``:
   data pipeline (seeded per element), so the step needs no key and a resumed run is exact.
 * **Checks**: each step's metrics are fetched one step late (so the host never stalls the
   device) and a non-finite loss or gradient norm stops the run naming the step and the terms.
-* **Checkpoints** (:mod:`train.checkpointing`) every ``checkpoint.every_steps`` and at the end,
-  with the grain iterator; the run resumes from the latest one in ``workdir``.
+* **Config** (:mod:`train.run_config`): the library's dataclasses built from the config
+  sections; keys outside the schema are refused. The compiled step lives in a
+  :class:`StepCache` owned by the trainer (or handed to several trainers).
+* **Checkpoints** (:mod:`train.checkpointing`, layout :mod:`threept_jax.data.run_dir`) every
+  ``checkpoint.every_steps``, at the end and on SIGTERM (then the run stops), with the grain
+  iterator; the run resumes from the latest one in ``workdir``.
 * **Evaluation** (:mod:`train.eval_detector`) every ``eval.every_steps`` and at the end.
 * **Logs** (:mod:`train.logging_utils`): loss terms, learning rate, grad/param norms,
   examples/s to TensorBoard (``<workdir>/tb``) and the console, and a progress bar.

@@ -1,8 +1,9 @@
 """One of several CPU processes of a distributed training run (test_cluster.py starts them).
 
-``python multiprocess_worker.py PORT PROCESS_ID NUM_PROCESSES CONFIG_JSON WORKDIR OUT_NPZ``:
-joins the job through ``jax.distributed.initialize`` (coordinator 127.0.0.1:PORT, gloo
-collectives, one CPU device per process), trains steps 1 and 2 by hand, saves a checkpoint,
+``python multiprocess_worker.py CONFIG_JSON WORKDIR OUT_NPZ`` with the environment of a
+Kubernetes indexed Job (``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES``,
+``JOB_COMPLETION_INDEX``): joins the job as ``train/launch.py`` does
+(``sharding.maybe_initialize_distributed``; gloo collectives, one CPU device per process), trains steps 1 and 2 by hand, saves a checkpoint,
 builds a second trainer from the workdir (a restore) and runs it to ``total_steps`` (3) with
 ``DetectorTrainer.run``. Writes this process's batches (its slice of each global batch) and the
 losses of the three steps to OUT_NPZ.
@@ -19,16 +20,20 @@ import ml_collections  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def main(port, process_id, num_processes, config_json, workdir, out):
+def main(config_json, workdir, out):
+    # CPU devices of different processes talk through gloo (the default has no cross-process
+    # collectives).
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.config.update("jax_num_cpu_devices", 1)
-    jax.distributed.initialize(f"127.0.0.1:{port}", num_processes=int(num_processes),
-                               process_id=int(process_id), initialization_timeout=60)
+    from train import sharding
     from train import trainer_detector as td
+
+    assert sharding.maybe_initialize_distributed("auto")
 
     with open(config_json) as f:
         config = ml_collections.ConfigDict(json.load(f))
-    assert jax.process_count() == int(num_processes) and len(jax.devices()) == jax.process_count()
+    assert jax.process_count() == int(os.environ["JAX_NUM_PROCESSES"]) == len(jax.devices())
+    assert jax.process_index() == int(os.environ["JOB_COMPLETION_INDEX"])
     record = {}
     cache = td.StepCache()  # the restored trainer reuses the first one's compiled step
     first = td.DetectorTrainer(config, workdir, step_cache=cache)

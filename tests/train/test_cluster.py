@@ -164,7 +164,8 @@ def _free_port() -> int:
 
 
 def test_two_processes_train_like_one_and_restore(toy, tmp_path):
-    """Two CPU processes (jax.distributed, gloo collectives, one device each, per-process data
+    """Two CPU processes started like a Kubernetes indexed Job (JAX_COORDINATOR_ADDRESS,
+    JAX_NUM_PROCESSES, JOB_COMPLETION_INDEX; gloo collectives, one device each, per-process data
     slices) give the loss of one process running the same global batches on two devices, for
     two steps by hand, a checkpoint written by both, and a third step after both restored."""
     cfg = small_config(toy, **{"mesh.data": -1})
@@ -172,9 +173,10 @@ def test_two_processes_train_like_one_and_restore(toy, tmp_path):
     cfg_file.write_text(cfg.to_json())
     port = _free_port()
     procs = [subprocess.Popen(
-        [sys.executable, str(ROOT / "tests" / "train" / "multiprocess_worker.py"), str(port),
-         str(i), "2", str(cfg_file), str(tmp_path / "multi"), str(tmp_path / f"p{i}.npz")],
-        env=SUBPROCESS_ENV, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        [sys.executable, str(ROOT / "tests" / "train" / "multiprocess_worker.py"),
+         str(cfg_file), str(tmp_path / "multi"), str(tmp_path / f"p{i}.npz")],
+        env={**SUBPROCESS_ENV, "JAX_COORDINATOR_ADDRESS": f"127.0.0.1:{port}",
+             "JAX_NUM_PROCESSES": "2", "JOB_COMPLETION_INDEX": str(i)}, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
         text=True) for i in range(2)]
     try:
         outs = [p.communicate(timeout=300)[0] for p in procs]
