@@ -57,8 +57,10 @@ from threept_jax.models.configs import DetectorConfig
 from threept_jax.models.detector import Detector
 from train import sharding
 from train.checkpointing import Checkpointer, Preemption, abstract_with_shardings
+from train.eval_detector import DetectorEvaluator
 from train.logging_utils import MetricLogger
 from train.run_config import (
+    OptimConfig,
     check_config,
     example_config,
     loss_config,
@@ -81,9 +83,9 @@ def make_optimizer(optim: Mapping[str, Any], total_steps: int
                    ) -> tuple[optax.GradientTransformation, optax.Schedule]:
     """AdamW (decay on ndim >= 2 only) after global-norm clipping, warmup + cosine schedule.
 
-    ``optim`` holds the fields of :class:`train.run_config.OptimConfig` (``config.optim``).
+    ``optim``: fields of :class:`train.run_config.OptimConfig` (``config.optim``).
     """
-    o = ml_collections.ConfigDict(dict(optim))
+    o = OptimConfig(**dict(optim))
     warmup = int(min(o.warmup_steps, max(total_steps - 1, 0)))
     schedule = optax.warmup_cosine_decay_schedule(
         init_value=0.0, peak_value=o.learning_rate, warmup_steps=warmup,
@@ -384,8 +386,6 @@ class DetectorTrainer:
     @property
     def evaluator(self):
         if self._evaluator is None:
-            from train.eval_detector import DetectorEvaluator
-
             self._evaluator = DetectorEvaluator(self.config, self.compiled.graphdef, self.mesh,
                                                 self.table)
         return self._evaluator

@@ -216,3 +216,28 @@ def test_resuming_another_model_names_the_run(tmp_path):
     assert run.checkpoint_steps() == []
     with pytest.raises(FileNotFoundError, match="saved none yet"):
         run.resolve_step("best")
+
+
+def _imports(path) -> set[str]:
+    """Every module a file imports, at any depth (function-level imports included)."""
+    import ast
+
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            out |= {node.module} | {f"{node.module}.{a.name}" for a in node.names}
+    return out
+
+
+def test_no_import_cycle_and_train_infer_apart():
+    """The evaluator builds its configs from train.run_config, not the trainer; training and
+    inference share the run-directory format through threept_jax.data.run_dir only."""
+    assert not {m for m in _imports(ROOT / "train" / "eval_detector.py")
+                if m.startswith("train.trainer_detector")}
+    assert not {m for m in _imports(ROOT / "train" / "run_config.py") if m.startswith("train")}
+    infer_imports = _imports(ROOT / "infer" / "checkpoint.py")
+    assert not {m for m in infer_imports if m == "train" or m.startswith("train.")}
+    assert "threept_jax.data.run_dir" in infer_imports
+    assert "threept_jax.data.run_dir" in _imports(ROOT / "train" / "checkpointing.py")
