@@ -4,13 +4,15 @@
 Kubernetes indexed Job (``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES``,
 ``JOB_COMPLETION_INDEX``): joins the job as ``train/launch.py`` does
 (``sharding.maybe_initialize_distributed``; gloo collectives, one CPU device per process), trains steps 1 and 2 by hand, saves a checkpoint,
-builds a second trainer from the workdir (a restore) and runs it to ``total_steps`` (3) with
-``DetectorTrainer.run``. Writes this process's batches (its slice of each global batch) and the
-losses of the three steps to OUT_NPZ.
+builds a second trainer from the workdir (a restore) and runs it with ``DetectorTrainer.run``.
+Process 0 sends itself SIGTERM once step 3 is logged; JAX's preemption service tells both
+processes, which save at the step they agree on and return. Writes this process's batches (its
+slice of each global batch), the loss of every step and the step saved on SIGTERM to OUT_NPZ.
 """
 
 import json
 import os
+import signal
 import sys
 
 os.environ["JAX_PLATFORMS"] = "cpu"
@@ -45,11 +47,19 @@ def main(config_json, workdir, out):
     first.close()
     resumed = td.DetectorTrainer(config, workdir, step_cache=cache)
     assert resumed.start_step == 2, resumed.start_step
-    resumed.run(hooks=[lambda step, batch, metrics: record.__setitem__(
-        step, ({k: np.copy(v) for k, v in batch.items()}, metrics["loss"]))])
+
+    def hook(step, batch, metrics):
+        record[step] = ({k: np.copy(v) for k, v in batch.items()}, metrics["loss"])
+        if step == 3 and jax.process_index() == 0:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    summary = resumed.run(hooks=[hook])
+    preempted = summary["preempted"]
+    assert preempted is not None and preempted < config.total_steps, summary
     arrays = {f"step{s}/{k}": np.asarray(v) for s, (b, _) in record.items()
               for k, v in b.items() if k in td.STEP_FIELDS}
-    arrays["losses"] = np.array([record[s][1] for s in (1, 2, 3)])
+    arrays["losses"] = np.array([record[s][1] for s in range(1, preempted + 1)])
+    arrays["preempted"] = np.int64(preempted)
     np.savez(out, **arrays)
     jax.distributed.shutdown()
 

@@ -167,8 +167,9 @@ def test_two_processes_train_like_one_and_restore(toy, tmp_path):
     """Two CPU processes started like a Kubernetes indexed Job (JAX_COORDINATOR_ADDRESS,
     JAX_NUM_PROCESSES, JOB_COMPLETION_INDEX; gloo collectives, one device each, per-process data
     slices) give the loss of one process running the same global batches on two devices, for
-    two steps by hand, a checkpoint written by both, and a third step after both restored."""
-    cfg = small_config(toy, **{"mesh.data": -1})
+    two steps by hand, a checkpoint written by both, and the steps after both restored it, up
+    to the step both saved when one of them got SIGTERM (JAX's preemption service)."""
+    cfg = small_config(toy, total_steps=1000, **{"mesh.data": -1, "checkpoint.every_steps": 500})
     cfg_file = tmp_path / "config.json"
     cfg_file.write_text(cfg.to_json())
     port = _free_port()
@@ -186,15 +187,17 @@ def test_two_processes_train_like_one_and_restore(toy, tmp_path):
             p.wait()
     for p, out in zip(procs, outs, strict=True):
         assert p.returncode == 0, out[-4000:]
-    assert RunDir(tmp_path / "multi").checkpoint_steps() == [2, 3]
     parts = [np.load(tmp_path / f"p{i}.npz") for i in range(2)]
+    last = int(parts[0]["preempted"])
+    assert int(parts[1]["preempted"]) == last and 3 <= last < 500
+    assert RunDir(tmp_path / "multi").checkpoint_steps() == [2, last]
     np.testing.assert_array_equal(parts[0]["losses"], parts[1]["losses"])
     # The processes read different records (per-process slices of the data).
     assert not np.array_equal(parts[0]["step1/image"], parts[1]["step1/image"])
     # Reference: one process, two devices, the concatenated global batches.
-    ref = td.DetectorTrainer(small_config(toy, **{"mesh.data": 2}), tmp_path / "one",
-                             devices=jax.devices()[:2], step_cache=STEPS)
-    for step in (1, 2, 3):
+    ref = td.DetectorTrainer(small_config(toy, total_steps=1000, **{"mesh.data": 2}),
+                             tmp_path / "one", devices=jax.devices()[:2], step_cache=STEPS)
+    for step in range(1, last + 1):
         batch = {k: np.concatenate([p[f"step{step}/{k}"] for p in parts]) for k in td.STEP_FIELDS}
         loss = float(ref.train_step(batch)["loss"])
         assert loss == pytest.approx(float(parts[0]["losses"][step - 1]), rel=1e-5), step
@@ -204,7 +207,7 @@ def test_two_processes_train_like_one_and_restore(toy, tmp_path):
 # --------------------------------------------------------------------------- run directory
 
 
-def test_resuming_another_model_names_the_run(tmp_path):
+def test_resuming_another_model_names_the_run(toy, tmp_path):
     run = RunDir(tmp_path)
     run.write_model_config(DetectorConfig(variant="tiny/8", image_size=64, render_size=32))
     run.check_same_model(DetectorConfig(variant="tiny/8", image_size=64, render_size=32,
@@ -216,6 +219,14 @@ def test_resuming_another_model_names_the_run(tmp_path):
     assert run.checkpoint_steps() == []
     with pytest.raises(FileNotFoundError, match="saved none yet"):
         run.resolve_step("best")
+    # The trainer refuses before building anything: a tiny/16 config on the tiny/8 run.
+    (run.checkpoint_dir / "5").mkdir(parents=True)
+    (run.checkpoint_dir / "5" / "commit_success.txt").write_text("")
+    assert run.checkpoint_steps() == [5]
+    cfg = small_config(toy, **{"model.variant": "tiny/16"})
+    with pytest.raises(ValueError, match="this workdir holds a tiny/8 run"):
+        td.DetectorTrainer(cfg, tmp_path, devices=jax.devices()[:1], step_cache=STEPS)
+    assert json.loads(run.model_file.read_text())["variant"] == "tiny/8"  # not overwritten
 
 
 def _imports(path) -> set[str]:
