@@ -25,10 +25,11 @@ from scipy.spatial.transform import Rotation
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from threept_jax.data import bop  # noqa: E402
-from threept_jax.testing.bop_synthetic import SyntheticInstance, write_synthetic_dataset  # noqa: E402
-from threept_jax.eval.bop_eval import evaluate_pose_results  # noqa: E402
 from threept_jax.eval.symmetry import symmetry_transforms  # noqa: E402
+
+from threept_jax.data import bop  # noqa: E402
+from threept_jax.eval.bop_eval import evaluate_pose_results  # noqa: E402
+from threept_jax.testing.bop_synthetic import SyntheticInstance, write_synthetic_dataset  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "meshes" / "bop"
 # (dataset, obj_id): T-LESS with a continuous and with discrete symmetries, large YCB-V, IC-BIN

@@ -108,8 +108,9 @@ def main():
         T, K = views(mesh, R, hw)
         Tj, Kj = jnp.asarray(T), jnp.asarray(K)
         jcold, jwarm, mcold, mwarm = timed_pair(
-            lambda: jax.block_until_ready(raster.render(rmesh, Tj, Kj, hw, OUTPUTS)),
-            lambda: mit.render(T, K, hw, OUTPUTS),
+            lambda Tj=Tj, Kj=Kj, hw=hw: jax.block_until_ready(
+                raster.render(rmesh, Tj, Kj, hw, OUTPUTS)),
+            lambda T=T, K=K, hw=hw: mit.render(T, K, hw, OUTPUTS),
             args.reps,
         )
         rows.append((f"{hw[0]}x{hw[1]} batch {B}", B / jwarm, B / mwarm, jcold, mcold))

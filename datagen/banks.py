@@ -22,12 +22,9 @@ import json
 import pathlib
 from collections.abc import Sequence
 
-import numpy as np
-
 from threept_jax.data import banks as B
-from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
+from threept_jax.geometry.symmetry import Symmetries
 from threept_jax.pipeline.onboarding import render_bank
-
 
 
 class TableError(ValueError):

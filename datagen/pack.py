@@ -42,7 +42,6 @@ import hashlib
 import itertools
 import json
 import multiprocessing
-import os
 import pathlib
 from collections.abc import Sequence
 from typing import Any
@@ -53,8 +52,8 @@ import numpy as np
 # module, and need neither JAX nor Mitsuba (datagen.scene and datagen.banks are imported where
 # used).
 from threept_jax.data import bop, records
-from threept_jax.data.files import atomic_path, atomic_write_bytes
 from threept_jax.data.banks import BANK_SIZE, BANK_TEMPLATES
+from threept_jax.data.files import atomic_path, atomic_write_bytes
 
 SHARD_PATTERN = "shard-{:05d}-of-{:05d}.array_record"
 TABLE = "objects.json"

@@ -35,8 +35,6 @@ from typing import Any
 import manifold3d as mf
 import numpy as np
 import trimesh
-from scipy.spatial import ConvexHull
-from scipy.spatial.distance import pdist
 
 from threept_jax.geometry.diameter import mesh_diameter
 from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries

@@ -33,27 +33,18 @@ import ml_collections
 import numpy as np
 from flax import nnx
 
-from threept_jax.data.banks import BankFile, ObjectEntry
+from threept_jax.data.banks import BankFile, ObjectEntry, resize_renders
 from threept_jax.data.bop import Detection2D
-from threept_jax.data.banks import resize_renders
 from threept_jax.data.detector_input import BankCache, detection_dataset
 from threept_jax.eval.coco import evaluate_coco
 from threept_jax.geometry.boxes import box_iou, nms
+from threept_jax.geometry.symmetry import symmetric_angle_deg
 from threept_jax.models.detector import boxes_to_pixels, orientation_scores, patch_scores
 from train import sharding
+from train.run_config import example_config, model_config
 
 #: Eval batch fields sent to the device (and returned, so hosts see them in global order).
 EVAL_FIELDS = ("image", "obj_index", "boxes", "mask", "ignore", "rotations", "valid")
-
-
-def symmetric_angles(R_a: np.ndarray, R_b: np.ndarray, symmetries: np.ndarray) -> np.ndarray:
-    """min_s angle(R_a, R_b S_s) in degrees: R_a [N, 3, 3], R_b [N, 3, 3], symmetries
-    [S, 4, 4] or [S, 3, 3] (object frame, identity included). Float64."""
-    sym = np.asarray(symmetries, np.float64)[:, :3, :3]
-    cands = np.einsum("nij,sjk->nsik", np.asarray(R_b, np.float64), sym)  # [N, S, 3, 3]
-    tr = np.einsum("nij,nsij->ns", np.asarray(R_a, np.float64), cands)  # trace(R_a^T R_b S)
-    cos = np.clip((tr.max(axis=1) - 1.0) / 2.0, -1.0, 1.0)
-    return np.degrees(np.arccos(cos))
 
 
 def greedy_match(det_boxes: np.ndarray, det_scores: np.ndarray, gt_boxes: np.ndarray,
@@ -79,8 +70,6 @@ class DetectorEvaluator:
 
     def __init__(self, config: ml_collections.ConfigDict, graphdef: nnx.GraphDef,
                  mesh: jax.sharding.Mesh, table: Mapping[int, ObjectEntry]):
-        from train.trainer_detector import example_config
-
         self.config = config
         self.graphdef = graphdef
         self.mesh = mesh
@@ -94,7 +83,9 @@ class DetectorEvaluator:
         # collective); rows past its share of num_examples are marked invalid.
         self.local_examples = -(-self.num_examples // jax.process_count())
         self.num_batches = -(-self.local_examples // self.local_batch)
-        self.tile = int(config.model.image_size)
+        model_cfg = model_config(config)
+        self.tile = int(model_cfg.image_size)
+        self.render_size = int(model_cfg.render_size)
         ids = [k for k, v in table.items() if v.split in (None, "val")]
         self.obj_ids = np.asarray(sorted(ids), np.int64)
         self.obj_index = {int(o): i for i, o in enumerate(self.obj_ids)}
@@ -182,7 +173,7 @@ class DetectorEvaluator:
 
     def _object_banks(self, params):
         priors, banks = [], []
-        size = self.config.model.render_size
+        size = self.render_size
         for o in self.obj_ids:
             bank: BankFile = self.banks.get(int(o))
             p = resize_renders(bank.priors(), size)[None]
@@ -258,10 +249,10 @@ def compute_metrics(res: Mapping[str, np.ndarray], obj_ids: np.ndarray,
         tmpl_R, sym = template_rotations[obj], symmetries[obj]
         gt_R = res["gt_rotations"][n][tgt][match[match >= 0]]
         top = res["det_template"][n][ok][match >= 0]
-        ang = symmetric_angles(tmpl_R[top], gt_R, sym)
+        ang = symmetric_angle_deg(tmpl_R[top], gt_R, sym)
         matched += len(ang)
         correct += int((ang <= threshold_deg).sum())
-        best = np.stack([symmetric_angles(tmpl_R, np.broadcast_to(r, tmpl_R.shape), sym).min()
+        best = np.stack([symmetric_angle_deg(tmpl_R, np.broadcast_to(r, tmpl_R.shape), sym).min()
                          for r in gt_R])
         oracle += int((best <= threshold_deg).sum())
     coco = evaluate_coco(detections, gt, sizes, order, [int(o) for o in obj_ids],

@@ -1,14 +1,18 @@
 """Train a model: ``python train/launch.py --config train/configs/detector.py:tiny --workdir DIR``.
 
 Overrides use ml_collections' syntax, e.g. ``--config.data_dir=/data/records
---config.total_steps=2000 --config.mesh.fsdp=4``. The run resumes from the latest checkpoint
-in ``--workdir`` when there is one. On several hosts, start the same command on every host
-(SLURM, Open MPI or a coordinator address in ``JAX_COORDINATOR_ADDRESS``): the launcher calls
-``jax.distributed.initialize()`` first (``--config.distributed``).
+--config.total_steps=2000 --config.mesh.fsdp=4``; a key outside the config schema
+(``train/run_config.py``) stops the launcher before anything runs, naming the valid keys. The
+run resumes from the latest checkpoint in ``--workdir`` when there is one. On several hosts,
+start the same command on every host (Slurm, Open MPI, or ``JAX_COORDINATOR_ADDRESS``,
+``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID``): the launcher calls ``jax.distributed.initialize()``
+first (``--config.distributed``; README "Training on a cluster"). SIGTERM saves a checkpoint
+at the next step and exits 0.
 """
 
 from __future__ import annotations
 
+import re
 import sys
 
 from absl import app, flags, logging
@@ -20,11 +24,50 @@ _CONFIG = config_flags.DEFINE_config_file(
 _WORKDIR = flags.DEFINE_string("workdir", None, "Run folder: checkpoints, TensorBoard logs.")
 flags.mark_flags_as_required(["config", "workdir"])
 
+#: ``--config.a.b=v`` or ``--config.a.b v``: the override's key path.
+_OVERRIDE = re.compile(r"^--?config\.([^=\s]+)")
+
+
+def _fail(message: str) -> None:
+    sys.stderr.write(f"launch.py: {message}\n")
+    sys.exit(2)
+
+
+def parse_flags(argv: list[str]) -> list[str]:
+    """absl's flag parsing, with a one-line error for a config override naming no key.
+
+    ml_collections reports an unknown override key as an AttributeError traceback; every key
+    of the schema exists in the config (``default_config``), so a failing override is named
+    here by checking each override's path against the schema.
+    """
+    from train import run_config
+
+    try:
+        return flags.FLAGS(argv)
+    except flags.Error as e:
+        _fail(f"{e}\nPass --helpfull to see the flags.")
+    except (AttributeError, KeyError, TypeError) as e:
+        for arg in argv[1:]:
+            m = _OVERRIDE.match(arg)
+            if m:
+                try:
+                    run_config.check_key(m.group(1))
+                except run_config.ConfigError as bad:
+                    _fail(f"{bad} (in {arg.split('=')[0]})")
+        _fail(f"a --config override names a key the config file does not define: {e}")
+    raise AssertionError("unreachable")
+
 
 def main(argv) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
     config = _CONFIG.value
+    from train import run_config
+
+    try:
+        run_config.check_config(config)
+    except run_config.ConfigError as e:
+        _fail(f"{e} (in {flags.FLAGS['config'].config_filename})")
     if not flags.FLAGS["verbosity"].present:
         # Orbax logs every checkpoint step at INFO; our own progress goes to the console.
         logging.set_verbosity(logging.WARNING)
@@ -41,9 +84,13 @@ def main(argv) -> None:
     print(f"process {jax.process_index()}/{jax.process_count()}, devices: {jax.devices()}",
           flush=True)
     summary = trainer_detector.train(config, _WORKDIR.value)
+    if summary["preempted"] is not None:
+        print(f"stopped by SIGTERM after step {summary['preempted']} (checkpoint saved)",
+              flush=True)
+        return
     if jax.process_index() == 0 and summary.get("eval"):
         print("final eval: " + ", ".join(f"{k}={v:.4g}" for k, v in summary["eval"].items()))
 
 
 if __name__ == "__main__":
-    sys.exit(app.run(main))
+    sys.exit(app.run(main, flags_parser=parse_flags))

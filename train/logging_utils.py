@@ -14,6 +14,8 @@ from collections.abc import Mapping
 
 import tqdm
 
+from threept_jax.data.run_dir import TB_DIR
+
 
 class MetricLogger:
     """Averages per-step scalars and writes them every ``log_every`` steps."""
@@ -31,7 +33,7 @@ class MetricLogger:
         if enabled:
             from tensorboardX import SummaryWriter
 
-            self.writer = SummaryWriter(str(pathlib.Path(workdir) / "tb"))
+            self.writer = SummaryWriter(str(pathlib.Path(workdir) / TB_DIR))
             if progress_bar:
                 self.bar = tqdm.tqdm(total=total_steps, initial=start_step, unit="step",
                                      dynamic_ncols=True, desc="train")

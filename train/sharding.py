@@ -27,11 +27,17 @@ BATCH_AXES = ("data", "fsdp")
 def maybe_initialize_distributed(mode: Any = "auto") -> bool:
     """Call ``jax.distributed.initialize()`` when launched on several hosts.
 
-    ``mode`` True/False forces it; ``"auto"`` initialises when the environment names a
-    coordinator (``JAX_COORDINATOR_ADDRESS``) or a multi-task SLURM / Open MPI job, the
-    launchers ``jax.distributed.initialize()`` detects by itself (Cloud TPU pods need
-    ``--config.distributed=True``). Returns whether it initialised.
+    ``mode`` True/False (or the strings ``"true"``/``"false"``, as ``--config.distributed=True``
+    gives them) forces it; ``"auto"`` initialises when the environment names a coordinator
+    (``JAX_COORDINATOR_ADDRESS``) or a multi-task SLURM / Open MPI job, the launchers
+    ``jax.distributed.initialize()`` detects by itself (Cloud TPU pods need
+    ``--config.distributed=True``). Where JAX detects nothing (a Kubernetes indexed Job without
+    the ``kubernetes`` package), ``JAX_COORDINATOR_ADDRESS`` (host:port of process 0),
+    ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID`` (default: ``JOB_COMPLETION_INDEX``, which an
+    indexed Job sets) name the job. Returns whether it initialised.
     """
+    if isinstance(mode, str) and mode.lower() in ("true", "false"):
+        mode = mode.lower() == "true"
     if isinstance(mode, str):
         if mode != "auto":
             raise ValueError(f"distributed must be 'auto', True or False, got {mode!r}")
@@ -39,7 +45,17 @@ def maybe_initialize_distributed(mode: Any = "auto") -> bool:
         mode = bool(env.get("JAX_COORDINATOR_ADDRESS")) or any(
             int(env.get(k, "1") or 1) > 1 for k in ("SLURM_NTASKS", "OMPI_COMM_WORLD_SIZE"))
     if mode:
-        jax.distributed.initialize()
+        env = os.environ
+        kwargs = {}
+        if env.get("JAX_NUM_PROCESSES"):
+            kwargs["num_processes"] = int(env["JAX_NUM_PROCESSES"])
+            process_id = env.get("JAX_PROCESS_ID") or env.get("JOB_COMPLETION_INDEX")
+            if process_id is None:
+                raise ValueError("JAX_NUM_PROCESSES is set but neither JAX_PROCESS_ID nor "
+                                 "JOB_COMPLETION_INDEX is: set JAX_PROCESS_ID to this process's "
+                                 "index (0 on the coordinator)")
+            kwargs["process_id"] = int(process_id)
+        jax.distributed.initialize(**kwargs)
     return bool(mode)
 
 

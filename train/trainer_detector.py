@@ -18,8 +18,12 @@ and runs it to ``config.total_steps``:
   data pipeline (seeded per element), so the step needs no key and a resumed run is exact.
 * **Checks**: each step's metrics are fetched one step late (so the host never stalls the
   device) and a non-finite loss or gradient norm stops the run naming the step and the terms.
-* **Checkpoints** (:mod:`train.checkpointing`) every ``checkpoint.every_steps`` and at the end,
-  with the grain iterator; the run resumes from the latest one in ``workdir``.
+* **Config** (:mod:`train.run_config`): the library's dataclasses built from the config
+  sections; keys outside the schema are refused. The compiled step lives in a
+  :class:`StepCache` owned by the trainer (or handed to several trainers).
+* **Checkpoints** (:mod:`train.checkpointing`, layout :mod:`threept_jax.data.run_dir`) every
+  ``checkpoint.every_steps``, at the end and on SIGTERM (then the run stops), with the grain
+  iterator; the run resumes from the latest one in ``workdir``.
 * **Evaluation** (:mod:`train.eval_detector`) every ``eval.every_steps`` and at the end.
 * **Logs** (:mod:`train.logging_utils`): loss terms, learning rate, grad/param norms,
   examples/s to TensorBoard (``<workdir>/tb``) and the console, and a progress bar.
@@ -27,8 +31,8 @@ and runs it to ``config.total_steps``:
 
 from __future__ import annotations
 
+import collections
 import dataclasses
-import functools
 import json
 import math
 import pathlib
@@ -45,20 +49,24 @@ import optax
 from flax import nnx
 from jax.sharding import PartitionSpec as P
 
-from threept_jax.data.files import atomic_write_bytes, atomic_write_json
 from threept_jax.data.banks import BankFile, ObjectEntry, load_object_table
-from threept_jax.data.detector_input import (
-    ExampleConfig,
-    PhotometricConfig,
-    detection_dataset,
-    find_shards,
-)
+from threept_jax.data.detector_input import detection_dataset, find_shards
+from threept_jax.data.run_dir import RunDir
 from threept_jax.losses.detection import DetectorLossConfig, detection_loss, make_targets
 from threept_jax.models.configs import DetectorConfig
 from threept_jax.models.detector import Detector
 from train import sharding
-from train.checkpointing import Checkpointer, abstract_with_shardings
+from train.checkpointing import Checkpointer, Preemption, abstract_with_shardings
+from train.eval_detector import DetectorEvaluator
 from train.logging_utils import MetricLogger
+from train.run_config import (
+    OptimConfig,
+    check_config,
+    example_config,
+    loss_config,
+    model_config,
+    photometric_config,
+)
 
 #: Batch fields the train step reads; the others stay on the host.
 STEP_FIELDS = ("image", "prior_rgb", "template_rgb", "template_index", "boxes", "mask")
@@ -67,48 +75,16 @@ STEP_FIELDS = ("image", "prior_rgb", "template_rgb", "template_index", "boxes", 
 Hook = Callable[[int, Mapping[str, np.ndarray], Mapping[str, float]], None]
 
 
-# --------------------------------------------------------------------------- config -> objects
+# --------------------------------------------------------------------------- optimizer
 
 
-def resolve_dtype(name: str) -> Any:
-    """``"auto"`` -> bfloat16 on accelerators, float32 on CPU; otherwise the named dtype."""
-    if name == "auto":
-        return jnp.bfloat16 if jax.default_backend() != "cpu" else jnp.float32
-    return jnp.dtype(name)
-
-
-def model_config(config: ml_collections.ConfigDict) -> DetectorConfig:
-    m = config.model
-    return DetectorConfig(
-        variant=m.variant, image_size=m.image_size, render_size=m.render_size,
-        tokens_per_view=m.tokens_per_view, embed_dim=m.embed_dim, num_registers=m.num_registers,
-        posemb=m.posemb, share_backbone=m.share_backbone, attention_impl=m.attention_impl,
-        remat=m.remat, dtype=resolve_dtype(m.dtype), param_dtype=jnp.dtype(m.param_dtype))
-
-
-def loss_config(config: ml_collections.ConfigDict) -> DetectorLossConfig:
-    known = {f.name for f in dataclasses.fields(DetectorLossConfig)}
-    unknown = set(config.loss.keys()) - known
-    if unknown:
-        raise ValueError(f"unknown loss settings {sorted(unknown)}; known: {sorted(known)}")
-    return DetectorLossConfig(**config.loss.to_dict())
-
-
-def example_config(config: ml_collections.ConfigDict, *, split: str, num_templates: int
-                   ) -> ExampleConfig:
-    d = config.data
-    return ExampleConfig(
-        tile_size=config.model.image_size, max_instances=d.max_instances,
-        num_templates=num_templates, max_symmetries=d.max_symmetries,
-        render_size=config.model.render_size, negative_prob=d.negative_prob,
-        scale_prior=tuple(d.scale_prior), min_query_visib=d.min_query_visib,
-        min_target_visib=d.min_target_visib, min_box_size=d.min_box_size, split=split)
-
-
-def make_optimizer(config: ml_collections.ConfigDict, total_steps: int
+def make_optimizer(optim: Mapping[str, Any], total_steps: int
                    ) -> tuple[optax.GradientTransformation, optax.Schedule]:
-    """AdamW (decay on ndim >= 2 only) after global-norm clipping, warmup + cosine schedule."""
-    o = config.optim
+    """AdamW (decay on ndim >= 2 only) after global-norm clipping, warmup + cosine schedule.
+
+    ``optim``: fields of :class:`train.run_config.OptimConfig` (``config.optim``).
+    """
+    o = OptimConfig(**dict(optim))
     warmup = int(min(o.warmup_steps, max(total_steps - 1, 0)))
     schedule = optax.warmup_cosine_decay_schedule(
         init_value=0.0, peak_value=o.learning_rate, warmup_steps=warmup,
@@ -200,17 +176,11 @@ class CompiledStep:
     trace_counter: list[int]
 
 
-@functools.lru_cache(maxsize=4)
-def build_step(model_cfg: DetectorConfig, loss_cfg: DetectorLossConfig, optim_key: str,
-                   total_steps: int, seed: int, mesh: jax.sharding.Mesh, fsdp_min_size: int
-                   ) -> CompiledStep:
-    """Model graph, abstract state, shardings, jitted init and jitted step.
-
-    Cached per (model, loss, optimizer, schedule length, seed, mesh) in a process, so a
-    trainer rebuilt in the same process (a resume, a test) reuses the compiled executable.
-    ``optim_key`` is the optimizer config as sorted JSON (hashable).
-    """
-    optim = ml_collections.ConfigDict({"optim": json.loads(optim_key)})
+def build_step(model_cfg: DetectorConfig, loss_cfg: DetectorLossConfig,
+               optim: Mapping[str, Any], total_steps: int, seed: int, mesh: jax.sharding.Mesh,
+               fsdp_min_size: int) -> CompiledStep:
+    """Model graph, abstract state, shardings, jitted init and jitted step (compiled on its
+    first call). ``optim``: ``config.optim``. :class:`StepCache` keeps them for reuse."""
     tx, schedule = make_optimizer(optim, total_steps)
 
     def init():
@@ -235,16 +205,34 @@ def build_step(model_cfg: DetectorConfig, loss_cfg: DetectorLossConfig, optim_ke
     return CompiledStep(graphdef, abstract_state, shardings, init_jit, jitted, schedule, counter)
 
 
+class StepCache:
+    """Built steps (:func:`build_step`) by everything they depend on, owned by its holder.
+
+    A trainer makes its own unless given one; tests and benchmarks hand one cache to several
+    trainers so that a trainer rebuilt in the same process (a resume) reuses the compiled
+    executable instead of compiling again. Holds at most ``maxsize`` steps (least recently
+    used dropped first).
+    """
+
+    def __init__(self, maxsize: int = 4):
+        self.maxsize = maxsize
+        self._steps: collections.OrderedDict[Any, CompiledStep] = collections.OrderedDict()
+
+    def get(self, config: ml_collections.ConfigDict, mesh: jax.sharding.Mesh) -> CompiledStep:
+        model_cfg, loss_cfg = model_config(config), loss_config(config)
+        optim = config.optim.to_dict()
+        key = (model_cfg, loss_cfg, json.dumps(optim, sort_keys=True), int(config.total_steps),
+               int(config.seed), mesh, int(config.mesh.fsdp_min_size))
+        if key in self._steps:
+            self._steps.move_to_end(key)
+        else:
+            self._steps[key] = build_step(model_cfg, loss_cfg, optim, *key[3:])
+            while len(self._steps) > self.maxsize:
+                self._steps.popitem(last=False)
+        return self._steps[key]
+
+
 # --------------------------------------------------------------------------- checks
-
-
-def write_run_files(workdir: pathlib.Path, config: ml_collections.ConfigDict,
-                    model_cfg: DetectorConfig) -> None:
-    """``config.json`` (the whole run config) and ``detector.json`` (the model config that
-    inference rebuilds the detector from: ``infer.checkpoint.load_detector``)."""
-    atomic_write_bytes(workdir / "config.json",
-                       config.to_json_best_effort(indent=2, sort_keys=True).encode())
-    atomic_write_json(workdir / "detector.json", model_cfg.to_dict(), indent=2, sort_keys=True)
 
 
 def check_finite(step: int, metrics: Mapping[str, float]) -> None:
@@ -303,9 +291,12 @@ def validate_data(data_dir, table: Mapping[int, ObjectEntry], num_templates: int
 class DetectorTrainer:
     """State, data, step, checkpoints and logs of one 3PT-D run (module docstring)."""
 
-    def __init__(self, config: ml_collections.ConfigDict, workdir, *, devices=None):
+    def __init__(self, config: ml_collections.ConfigDict, workdir, *, devices=None,
+                 step_cache: StepCache | None = None):
+        check_config(config)
         self.config = config
         self.workdir = pathlib.Path(workdir)
+        self.run_dir = RunDir(workdir)
         if not config.data_dir:
             raise ValueError(
                 "config.data_dir is empty: pass --config.data_dir=<records folder> (written by "
@@ -319,11 +310,14 @@ class DetectorTrainer:
 
         self.model_cfg = model_config(config)
         self.loss_cfg = loss_config(config)
+        if self.run_dir.checkpoint_steps():
+            # Before Orbax meets parameters of other shapes.
+            self.run_dir.check_same_model(self.model_cfg)
         if jax.process_index() == 0:
-            write_run_files(self.workdir, config, self.model_cfg)
-        self.compiled = build_step(
-            self.model_cfg, self.loss_cfg, json.dumps(config.optim.to_dict(), sort_keys=True),
-            int(config.total_steps), int(config.seed), self.mesh, int(config.mesh.fsdp_min_size))
+            self.run_dir.write_config(config.to_json_best_effort(indent=2, sort_keys=True))
+            self.run_dir.write_model_config(self.model_cfg)
+        self.step_cache = StepCache() if step_cache is None else step_cache
+        self.compiled = self.step_cache.get(config, self.mesh)
 
         self.dataset = self._train_dataset()
         self.iterator = iter(self._iter_dataset(self.dataset))
@@ -346,7 +340,7 @@ class DetectorTrainer:
 
     def _train_dataset(self) -> grain.MapDataset:
         c = self.config
-        photometric = PhotometricConfig(**c.data.photometric.to_dict())
+        photometric = photometric_config(c)
         return detection_dataset(
             c.data_dir, "train",
             example_config(c, split="train", num_templates=c.data.num_train_templates),
@@ -389,8 +383,6 @@ class DetectorTrainer:
     @property
     def evaluator(self):
         if self._evaluator is None:
-            from train.eval_detector import DetectorEvaluator
-
             self._evaluator = DetectorEvaluator(self.config, self.compiled.graphdef, self.mesh,
                                                 self.table)
         return self._evaluator
@@ -409,20 +401,23 @@ class DetectorTrainer:
     # -- loop ----------------------------------------------------------------------------
 
     def run(self, hooks: Iterable[Hook] = ()) -> dict[str, Any]:
-        """Train to ``total_steps``; returns the last logged train and eval metrics."""
+        """Train to ``total_steps``, or until SIGTERM (then save and return early).
+
+        Returns the last logged train and eval metrics, and under ``"preempted"`` the step
+        saved on SIGTERM (None when the run reached ``total_steps``).
+        """
         c = self.config
         hooks = list(hooks)
         is_main = jax.process_index() == 0
-        if is_main:
-            self.workdir.mkdir(parents=True, exist_ok=True)
-            (self.workdir / "config.json").write_text(c.to_json_best_effort(indent=1))
         logger = MetricLogger(self.workdir, total_steps=c.total_steps,
                               start_step=self.start_step, examples_per_step=c.batch_size,
                               enabled=is_main, progress_bar=c.progress_bar)
         if self.start_step:
             logger.print(f"resumed from {self.checkpointer.directory}/{self.start_step}")
-        summary: dict[str, Any] = {"train": {}, "eval": {}}
+        summary: dict[str, Any] = {"train": {}, "eval": {}, "preempted": None}
         pending = None
+        preemption = Preemption(self.checkpointer.manager)
+        preemption.install()
 
         def finish(item):
             step, host_batch, metrics = item
@@ -462,15 +457,26 @@ class DetectorTrainer:
                     self.save(eval_metrics)
                 if do_eval or do_save:
                     logger.reset_clock()
+                if preemption.reached(step):
+                    if pending is not None:
+                        finish(pending)
+                        pending = None
+                    if not do_save:
+                        self.save()
+                    summary["preempted"] = step
+                    logger.print(f"SIGTERM: saved step {step} to {self.checkpointer.directory}; "
+                                 "start the same command again to resume")
+                    break
             if pending is not None:
                 finish(pending)
         finally:
+            preemption.uninstall()
             self.close()
             logger.close()
         return summary
 
 
 def train(config: ml_collections.ConfigDict, workdir, hooks: Iterable[Hook] = (),
-          devices=None) -> dict[str, Any]:
+          devices=None, step_cache: StepCache | None = None) -> dict[str, Any]:
     """Build a :class:`DetectorTrainer` from ``config`` (resuming from ``workdir``) and run it."""
-    return DetectorTrainer(config, workdir, devices=devices).run(hooks)
+    return DetectorTrainer(config, workdir, devices=devices, step_cache=step_cache).run(hooks)

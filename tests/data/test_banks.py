@@ -10,8 +10,8 @@ from scipy.spatial.transform import Rotation
 
 from threept_jax.data import banks
 from threept_jax.geometry import camera
-from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
 from threept_jax.geometry.grids import prior_view_rotations, super_fibonacci_rotations
+from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
 
 
 def _bank(rng, obj_id=3, num_templates=10, size=24, symmetries=None):

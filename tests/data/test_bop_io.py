@@ -9,9 +9,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from threept_jax.data import bop
+from threept_jax.data.ply import load_ply_mesh, load_ply_vertices
 from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.testing.bop_synthetic import SyntheticInstance, write_synthetic_dataset
-from threept_jax.data.ply import load_ply_mesh, load_ply_vertices
 
 DATASETS = ["icbin", "itodd", "tless", "tudl", "ycbv"]
 K = np.array([[600.0, 0.0, 320.0], [0.0, 610.0, 240.0], [0.0, 0.0, 1.0]])

@@ -7,13 +7,13 @@ import cv2
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from fixtures.toy_data import write_toy_records
 from scipy.spatial.transform import Rotation
 
 from threept_jax.data import banks, records
 from threept_jax.data import detector_input as pl
 from threept_jax.geometry.camera import crop_intrinsics
 from threept_jax.render.crop import crop_and_resize
-from train.toy_data import write_toy_records
 
 TILE = 64
 

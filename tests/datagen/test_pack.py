@@ -17,8 +17,8 @@ import trimesh
 from datagen import generate, pack
 from datagen.scene import write_ply
 from threept_jax.data import banks, bop, records
-from threept_jax.testing.bop_synthetic import SyntheticInstance, write_synthetic_dataset
 from threept_jax.geometry.grids import prior_view_rotations, super_fibonacci_rotations
+from threept_jax.testing.bop_synthetic import SyntheticInstance, write_synthetic_dataset
 
 BANK = ["--bank-backend", "mitsuba", "--num-templates", "8", "--bank-size", "32", "--quiet"]
 

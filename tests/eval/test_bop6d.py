@@ -10,11 +10,11 @@ from scipy.spatial.transform import Rotation
 
 from threept_jax.data import bop
 from threept_jax.data.ply import load_ply_vertices
-from threept_jax.testing.bop_synthetic import SyntheticInstance, write_synthetic_dataset
-from threept_jax.geometry.symmetry import Symmetries
 from threept_jax.eval.bop6d import ImageGt, average_precision_101, evaluate_poses
 from threept_jax.eval.bop_eval import evaluate_pose_results
 from threept_jax.eval.pose_error import prepare_model
+from threept_jax.geometry.symmetry import Symmetries
+from threept_jax.testing.bop_synthetic import SyntheticInstance, write_synthetic_dataset
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
 W = 640
@@ -433,7 +433,7 @@ def test_matches_toolkit_reference_on_generated_dataset(tmp_path, itodd, tless):
                     seed=int(rng.integers(1 << 30)),
                 )
                 insts.append(SyntheticInstance(obj, T, float(rng.choice([1.0, 0.6, 0.05]))))
-                for dup in range(int(rng.integers(0, 3))):
+                for _ in range(int(rng.integers(0, 3))):
                     Te = T.copy()
                     Te[:3, :3] = (
                         Te[:3, :3] @ Rotation.from_rotvec(rng.normal(size=3) * 0.08).as_matrix()

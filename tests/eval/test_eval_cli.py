@@ -11,8 +11,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from threept_jax.data import bop
-from threept_jax.testing.bop_synthetic import SyntheticInstance, write_synthetic_dataset
 from threept_jax.eval.__main__ import main
+from threept_jax.testing.bop_synthetic import SyntheticInstance, write_synthetic_dataset
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
 KEYS_6D = {

@@ -7,9 +7,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from threept_jax.data.bop import load_models
-from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
 from threept_jax.eval import pose_error as pe
-from threept_jax.geometry.symmetry import symmetry_transforms
+from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries, symmetry_transforms
 
 K = np.array([[1075.65, 0.0, 320.5], [0.0, 1073.9, 239.2], [0.0, 0.0, 1.0]])
 

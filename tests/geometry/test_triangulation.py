@@ -15,7 +15,8 @@ from threept_jax.geometry.triangulation import (
 K640 = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])
 
 
-def _look_at(eye, target=np.zeros(3)):
+def _look_at(eye, target=None):
+    target = np.zeros(3) if target is None else target
     z = (target - eye) / np.linalg.norm(target - eye)
     x = np.cross(z, [0.0, 0.0, 1.0])
     x /= np.linalg.norm(x)

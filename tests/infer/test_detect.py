@@ -8,9 +8,9 @@ import trimesh
 from flax import nnx
 
 from infer.detect import SceneDetector
-from threept_jax.geometry.validate import validate_intrinsics
 from infer.onboarding import Onboarder
 from infer.scene import find_instances
+from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.models.configs import DetectorConfig
 from threept_jax.models.detector import Detector
 from threept_jax.render import Mesh

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from threept_jax.render import Mesh, bucket_size, decimate, load_mesh, subdivide, to_raster_mesh
 from threept_jax.geometry.diameter import mesh_diameter
+from threept_jax.render import Mesh, bucket_size, decimate, load_mesh, subdivide, to_raster_mesh
 from threept_jax.render.mesh import is_closed
 
 

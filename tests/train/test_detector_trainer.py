@@ -1,58 +1,26 @@
 """3PT-D trainer: sharded step equivalence, single compilation, kill-and-resume, checks, eval."""
 
 import json
-import os
-import pathlib
 import signal
 import subprocess
-import sys
 import time
 
 import jax
-import ml_collections
 import numpy as np
 import pytest
+from fixtures.training import ROOT, SUBPROCESS_ENV, launch_args, small_config
 from flax import nnx
 
-from threept_jax.data import banks
+from infer.checkpoint import load_detector
+from threept_jax.data.run_dir import RunDir
 from threept_jax.models.detector import Detector
 from threept_jax.models.vit import count_params
-from infer.checkpoint import load_detector
-from train import eval_detector, sharding
+from train import eval_detector, run_config, sharding
 from train import trainer_detector as td
 from train.configs import detector as detector_configs
-from train.toy_data import write_toy_records
 
-ROOT = pathlib.Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    return write_toy_records(tmp_path_factory.mktemp("toy"), num_train=16, num_val=6,
-                             num_templates=24)
-
-
-def small_config(data_dir, **overrides) -> ml_collections.ConfigDict:
-    """The tiny config shrunk for tests: 64 px tiles, patch 8, batch 4, 8 templates."""
-    c = detector_configs.get_config("tiny")
-    c.data_dir = str(data_dir)
-    c.total_steps = 3
-    c.batch_size = 4
-    c.model.update(variant="tiny/8", image_size=64, render_size=32)
-    c.data.update(max_instances=4, num_train_templates=8, max_symmetries=8)
-    c.optim.update(warmup_steps=1, learning_rate=1e-3)
-    c.eval.update(every_steps=0, num_examples=6, batch_size=4, max_detections=5)
-    c.checkpoint.update(every_steps=2, async_save=False)
-    c.mesh.update(data=1, fsdp=1, fsdp_min_size=0)
-    c.log_every = 1
-    c.progress_bar = False
-    for key, value in overrides.items():
-        node = c
-        *path, last = key.split(".")
-        for p in path:
-            node = node[p]
-        node[last] = value
-    return c
+#: Compiled steps shared by this module's trainers (a resumed trainer reuses its run's step).
+STEPS = td.StepCache(maxsize=8)
 
 
 def _params_np(trainer):
@@ -64,10 +32,11 @@ def test_configs_have_the_required_keys_and_valid_models():
         c = detector_configs.get_config(name)
         for key in ("total_steps", "batch_size", "data_dir", "seed"):
             assert key in c, (name, key)
-        cfg = td.model_config(c)
-        td.loss_config(c)
+        run_config.check_config(c)
+        cfg = run_config.model_config(c)
+        run_config.loss_config(c)
         assert cfg.image_size == c.model.image_size
-    paper = td.model_config(detector_configs.get_config("paper"))
+    paper = run_config.model_config(detector_configs.get_config("paper"))
     n = count_params(nnx.eval_shape(lambda: Detector(paper, rngs=nnx.Rngs(0))))
     # B/16 backbone at 512 px (85.0M blocks + 0.6M patch + 0.8M position embedding), two
     # attention pools (7.1M each) and five 768x768 projections/head layers (3M): ~104M.
@@ -89,9 +58,10 @@ def test_param_sharding_rule():
 
 def test_one_device_and_four_devices_agree_and_compile_once(toy, tmp_path):
     assert len(jax.devices()) >= 4, "tests/conftest.py sets jax_num_cpu_devices=4"
-    one = td.DetectorTrainer(small_config(toy), tmp_path / "one", devices=jax.devices()[:1])
+    one = td.DetectorTrainer(small_config(toy), tmp_path / "one", devices=jax.devices()[:1],
+                             step_cache=STEPS)
     four = td.DetectorTrainer(small_config(toy, **{"mesh.data": 2, "mesh.fsdp": 2}),
-                              tmp_path / "four", devices=jax.devices()[:4])
+                              tmp_path / "four", devices=jax.devices()[:4], step_cache=STEPS)
     specs = {s.spec for s in jax.tree.leaves(four.compiled.state_shardings)}
     assert any("fsdp" in tuple(s) for s in specs)  # parameters really are sharded
     kernel = four.state["params"]["image_tower"]["blocks"][0]["mlp"]["fc1"]["kernel"]
@@ -152,14 +122,16 @@ def _assert_same_batch(a, b):
 def test_kill_and_resume_in_process(toy, tmp_path, monkeypatch):
     cfg = small_config(toy, **{"eval.every_steps": 3})
     full = {}
-    summary = td.train(cfg, tmp_path / "full", hooks=[_record(full)], devices=jax.devices()[:1])
+    summary = td.train(cfg, tmp_path / "full", hooks=[_record(full)], devices=jax.devices()[:1],
+                       step_cache=STEPS)
     assert sorted(full) == [1, 2, 3]
     ev = summary["eval"]
     assert 0.0 <= ev["eval/ap50"] <= 1.0 and 0.0 <= ev["eval/orientation_acc"] <= 1.0
     assert ev["eval/num_gt"] > 0
     assert (tmp_path / "full" / "tb").is_dir() and any((tmp_path / "full" / "tb").iterdir())
     # Interrupted run: two steps, a checkpoint, then the process "dies".
-    first = td.DetectorTrainer(cfg, tmp_path / "cut", devices=jax.devices()[:1])
+    first = td.DetectorTrainer(cfg, tmp_path / "cut", devices=jax.devices()[:1],
+                               step_cache=STEPS)
     for step in (1, 2):
         batch = first.next_batch()
         _assert_same_batch(batch, full[step][0])
@@ -168,7 +140,8 @@ def test_kill_and_resume_in_process(toy, tmp_path, monkeypatch):
     first.close()
     del first
     resumed_log = {}
-    again = td.DetectorTrainer(cfg, tmp_path / "cut", devices=jax.devices()[:1])
+    again = td.DetectorTrainer(cfg, tmp_path / "cut", devices=jax.devices()[:1],
+                               step_cache=STEPS)
     assert again.start_step == 2 and again.step == 2
     again.run(hooks=[_record(resumed_log)])
     assert sorted(resumed_log) == [3]
@@ -176,7 +149,7 @@ def test_kill_and_resume_in_process(toy, tmp_path, monkeypatch):
     assert resumed_log[3][1] == pytest.approx(full[3][1], rel=1e-6)
     # Inference loads exactly the trained parameters (and the model config) from the workdir.
     model, model_cfg, step = load_detector(tmp_path / "cut", step="latest")
-    assert step == 3 and model_cfg == td.model_config(cfg)
+    assert step == 3 and model_cfg == run_config.model_config(cfg)
     loaded = nnx.to_pure_dict(nnx.state(model, nnx.Param))
     jax.tree.map(np.testing.assert_array_equal, loaded, _params_np(again))
     # A relative workdir works too (Orbax itself refuses relative paths).
@@ -185,7 +158,7 @@ def test_kill_and_resume_in_process(toy, tmp_path, monkeypatch):
 
 
 def test_best_checkpoint_survives_a_restart(tmp_path):
-    from infer.checkpoint import _best_step, saved_metrics
+    from infer.checkpoint import saved_metrics
     from train.checkpointing import Checkpointer
 
     (tmp_path / "config.json").write_text(json.dumps(
@@ -198,29 +171,17 @@ def test_best_checkpoint_survives_a_restart(tmp_path):
     # Kept: the latest (4) and the best (2); read back by a fresh process's loader.
     steps = sorted(int(p.name) for p in (tmp_path / "checkpoints").iterdir() if p.name.isdigit())
     assert steps == [2, 4]
-    assert _best_step(tmp_path, steps) == 2
+    assert RunDir(tmp_path).best_step() == 2 and RunDir(tmp_path).checkpoint_steps() == steps
     assert saved_metrics(tmp_path, 2) == {"eval/ap50": 0.7, "eval/ap": 0.1}
 
 
 def test_killed_subprocess_resumes_to_the_same_batch(toy, tmp_path):
     """A real run killed with SIGKILL after its step-2 checkpoint resumes to step 3 exactly."""
     workdir = tmp_path / "killed"
-    args = [sys.executable, str(ROOT / "train" / "launch.py"),
-            "--config", str(ROOT / "train" / "configs" / "detector.py") + ":tiny",
-            "--workdir", str(workdir)]
     cfg = small_config(toy, total_steps=1000)
-    for key in ("data_dir", "total_steps", "batch_size", "model.variant", "model.image_size",
-                "model.render_size", "data.max_instances", "data.num_train_templates",
-                "data.max_symmetries", "optim.warmup_steps", "eval.every_steps",
-                "checkpoint.every_steps", "checkpoint.async_save", "mesh.data", "mesh.fsdp",
-                "mesh.fsdp_min_size", "progress_bar"):
-        value = cfg
-        for part in key.split("."):
-            value = value[part]
-        args.append(f"--config.{key}={value}")
-    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            cwd=ROOT)
+    args = launch_args(cfg, workdir)
+    proc = subprocess.Popen(args, env=SUBPROCESS_ENV, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, cwd=ROOT)
     try:
         deadline = time.time() + 240
         while not (workdir / "checkpoints" / "2" / "commit_success.txt").exists():
@@ -237,13 +198,15 @@ def test_killed_subprocess_resumes_to_the_same_batch(toy, tmp_path):
     k = steps[-1]
     # Reference: an uninterrupted in-process run over the same config to step k + 1.
     ref_cfg = small_config(toy, total_steps=1000)
-    ref = td.DetectorTrainer(ref_cfg, tmp_path / "ref", devices=jax.devices()[:1])
+    ref = td.DetectorTrainer(ref_cfg, tmp_path / "ref", devices=jax.devices()[:1],
+                             step_cache=STEPS)
     for _ in range(k):
         ref.train_step(ref.next_batch())
     ref_batch = ref.next_batch()
     ref_loss = float(ref.train_step(ref_batch)["loss"])
     ref.close()
-    resumed = td.DetectorTrainer(ref_cfg, workdir, devices=jax.devices()[:1])
+    resumed = td.DetectorTrainer(ref_cfg, workdir, devices=jax.devices()[:1],
+                                 step_cache=STEPS)
     assert resumed.start_step == k
     batch = resumed.next_batch()
     _assert_same_batch(batch, ref_batch)
@@ -252,7 +215,8 @@ def test_killed_subprocess_resumes_to_the_same_batch(toy, tmp_path):
 
 
 def test_non_finite_loss_stops_with_a_clear_message(toy, tmp_path, monkeypatch):
-    trainer = td.DetectorTrainer(small_config(toy), tmp_path / "nan", devices=jax.devices()[:1])
+    trainer = td.DetectorTrainer(small_config(toy), tmp_path / "nan", devices=jax.devices()[:1],
+                                 step_cache=STEPS)
     real_next = trainer.next_batch
 
     def poisoned():
@@ -271,15 +235,15 @@ def test_non_finite_loss_stops_with_a_clear_message(toy, tmp_path, monkeypatch):
 def test_bad_data_dirs_name_the_fix(toy, tmp_path):
     one = jax.devices()[:1]
     with pytest.raises(ValueError, match="data_dir is empty"):
-        td.DetectorTrainer(small_config(""), tmp_path / "w", devices=one)
+        td.DetectorTrainer(small_config(""), tmp_path / "w", devices=one, step_cache=STEPS)
     empty = tmp_path / "empty"
     empty.mkdir()
     (empty / "objects.json").write_text((toy / "objects.json").read_text())
     with pytest.raises(FileNotFoundError, match="datagen.generate"):
-        td.DetectorTrainer(small_config(empty), tmp_path / "w", devices=one)
+        td.DetectorTrainer(small_config(empty), tmp_path / "w", devices=one, step_cache=STEPS)
     with pytest.raises(ValueError, match="num_train_templates"):
         td.DetectorTrainer(small_config(toy, **{"data.num_train_templates": 30}), tmp_path / "w",
-                           devices=one)
+                           devices=one, step_cache=STEPS)
     # An object table that misses an object the records use.
     partial = tmp_path / "partial"
     partial.mkdir()
@@ -290,22 +254,10 @@ def test_bad_data_dirs_name_the_fix(toy, tmp_path):
              if v.get("split") == "val"}
     (partial / "objects.json").write_text(json.dumps(table))
     with pytest.raises(KeyError, match="datagen.pack"):
-        td.DetectorTrainer(small_config(partial), tmp_path / "w", devices=one)
+        td.DetectorTrainer(small_config(partial), tmp_path / "w", devices=one, step_cache=STEPS)
     with pytest.raises(ValueError, match="divisible"):
         td.DetectorTrainer(small_config(toy, batch_size=6, **{"mesh.data": 4}), tmp_path / "w",
-                           devices=jax.devices()[:4])
-
-
-def test_symmetric_angles_match_scipy():
-    from scipy.spatial.transform import Rotation
-
-    a = Rotation.random(30, random_state=0)
-    b = Rotation.random(30, random_state=1)
-    sym = banks.bank_symmetries(banks.Symmetries(discrete=np.diag([-1.0, 1, -1, 1])[None]))
-    got = eval_detector.symmetric_angles(a.as_matrix(), b.as_matrix(), sym)
-    ref = np.minimum((a.inv() * b).magnitude(),
-                     (a.inv() * b * Rotation.from_matrix(sym[1, :3, :3])).magnitude())
-    np.testing.assert_allclose(got, np.degrees(ref), atol=1e-6)
+                           devices=jax.devices()[:4], step_cache=STEPS)
 
 
 def test_metrics_on_a_hand_made_case():

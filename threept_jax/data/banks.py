@@ -63,19 +63,16 @@ import io
 import json
 import os
 import pathlib
-import tempfile
 import zipfile
 from typing import Any
 
 import cv2
 import numpy as np
 
-from threept_jax.geometry.diameter import MIN_DIAMETER_MM
-from threept_jax.geometry.symmetry import Symmetries
 from threept_jax.data.files import atomic_write_bytes, atomic_write_json
 from threept_jax.data.records import NPY_HEADER_LOCK
-from threept_jax.geometry.symmetry import symmetry_transforms
-from threept_jax.geometry.camera import camera_rotation, object_centred_rotation
+from threept_jax.geometry.diameter import MIN_DIAMETER_MM
+from threept_jax.geometry.symmetry import Symmetries, symmetry_transforms
 
 BANK_FORMAT_VERSION = 1
 #: Default render side (pixels) and template count of the banks datagen writes and inference

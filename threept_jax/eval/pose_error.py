@@ -29,8 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from threept_jax.data.bop import ObjectModel
-from threept_jax.geometry.symmetry import Symmetries
-from threept_jax.geometry.symmetry import MAX_SYM_DISC_STEP, symmetry_transforms
+from threept_jax.geometry.symmetry import MAX_SYM_DISC_STEP, Symmetries, symmetry_transforms
 
 __all__ = [
     "PreparedModel",

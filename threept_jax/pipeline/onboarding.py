@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 
 from threept_jax.data import banks
-from threept_jax.geometry.symmetry import Symmetries
 from threept_jax.geometry.grids import prior_view_rotations, super_fibonacci_rotations
+from threept_jax.geometry.symmetry import Symmetries
 from threept_jax.render import Mesh, Renderer, load_mesh, prepare_mesh
 
 __all__ = ["object_camera", "render_bank", "render_object_views"]

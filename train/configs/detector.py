@@ -1,9 +1,12 @@
 """3PT-D training configs: ``get_config("tiny" | "small" | "paper")``.
 
 Used as ``python train/launch.py --config train/configs/detector.py:tiny --workdir DIR
-[--config.key=value ...]``. Every config has top-level ``total_steps``, ``batch_size`` (global,
-over all processes and devices) and ``data_dir`` (a records folder with ``train/`` and ``val/``
-ArrayRecord shards, ``objects.json`` and ``banks/``, written by ``python -m datagen.pack``).
+[--config.key=value ...]``. The configs state only overrides of the defaults of
+:func:`train.run_config.default_config` (every key of the schema, from the dataclass owning
+it: ``model`` is a ``DetectorConfig``, ``loss`` a ``DetectorLossConfig``, ...); a key outside
+that schema is refused. Top-level ``total_steps``, ``batch_size`` (global, over all processes
+and devices) and ``data_dir`` (a records folder with ``train/`` and ``val/`` ArrayRecord
+shards, ``objects.json`` and ``banks/``, written by ``python -m datagen.pack``).
 
 * ``tiny``: CPU, tests and the demo: 128 px tiles, the "tiny/16" ViT (width 64, depth 2),
   32 px renders, 16 templates per example, batch 16, 1000 steps (about 4 minutes on 2 cores),
@@ -20,90 +23,20 @@ from __future__ import annotations
 
 import ml_collections
 
+from train.run_config import default_config
+
 
 def _base() -> ml_collections.ConfigDict:
-    c = ml_collections.ConfigDict()
-    c.trainer = "detector"  # which train/trainer_<name>.py launch.py runs
-    c.seed = 0
-    c.total_steps = 1000
-    c.batch_size = 8
-    c.data_dir = ""
-    # "auto": jax.distributed.initialize() when launched on several hosts (detected from the
-    # cluster's environment); True/False force it.
-    c.distributed = "auto"
-
-    c.model = ml_collections.ConfigDict(dict(
+    """The overrides every variant shares; every other key keeps its dataclass default
+    (``train/run_config.py`` names the dataclass of each section)."""
+    c = default_config()
+    c.model.update(
         variant="tiny/16",
         image_size=128,  # the tile side, also the data pipeline's tile
         render_size=32,
-        tokens_per_view=4,
-        embed_dim=ml_collections.FieldReference(None, field_type=int),
-        num_registers=0,
-        posemb="learned",
-        share_backbone=True,
-        attention_impl=ml_collections.FieldReference(None, field_type=str),
-        remat=False,
         dtype="auto",  # bfloat16 on accelerators, float32 on CPU
-        param_dtype="float32",
-    ))
-    c.loss = ml_collections.ConfigDict(dict(
-        cost_class=2.0, cost_l1=5.0, cost_giou=2.0,
-        presence_weight=2.0, l1_weight=5.0, giou_weight=2.0, orientation_weight=1.0,
-        focal_alpha=0.25, focal_gamma=2.0, orientation_alpha=0.25, orientation_gamma=2.0,
-        soft_matching=1.0,
-        matches_per_target=1,
-    ))
-    c.optim = ml_collections.ConfigDict(dict(
-        learning_rate=1e-3,
-        warmup_steps=50,
-        end_lr_factor=0.01,  # cosine decays to learning_rate * end_lr_factor
-        b1=0.9, b2=0.999, eps=1e-8,
-        weight_decay=0.05,  # on matrices only (ndim >= 2), not biases, norms or scalars
-        grad_clip_norm=1.0,
-    ))
-    c.data = ml_collections.ConfigDict(dict(
-        max_instances=8,
-        num_train_templates=16,
-        max_symmetries=64,
-        negative_prob=0.2,
-        scale_prior=(128.0, 350.0),
-        min_query_visib=0.1,
-        min_target_visib=0.1,
-        min_box_size=2.0,
-        num_train_records=-1,  # -1: every record of the split
-        num_workers=0,  # grain multiprocess prefetch workers per process (0: in-process)
-        worker_buffer_size=2,
-        read_threads=4,
-        prefetch_buffer_size=16,
-        photometric=ml_collections.ConfigDict(dict(
-            brightness=0.15, contrast=0.3, saturation=0.3, hue=0.03, noise_std=0.03,
-            blur_prob=0.2, blur_sigma=1.2)),
-    ))
-    c.eval = ml_collections.ConfigDict(dict(
-        every_steps=500,  # 0: no periodic evaluation
-        num_examples=256,  # tiles from the val split (each queried with one object)
-        batch_size=16,
-        num_templates=-1,  # templates of the bank used for orientation (-1: all)
-        template_chunk=256,  # templates embedded per chunk when building the banks
-        max_detections=20,
-        nms_iou=0.5,
-        orientation_threshold_deg=15.0,
-        match_iou=0.5,
-        seed=1,
-    ))
-    c.checkpoint = ml_collections.ConfigDict(dict(
-        every_steps=500,
-        max_to_keep=3,
-        best_metric="eval/ap50",
-        best_mode="max",
-        async_save=True,
-    ))
-    # Device mesh ("data", "fsdp"); -1 = all remaining devices. Parameters (and optimizer
-    # moments) are sharded over "fsdp" on their largest divisible axis when they have at least
-    # fsdp_min_size elements; the batch is sharded over both axes.
-    c.mesh = ml_collections.ConfigDict(dict(data=-1, fsdp=1, fsdp_min_size=2**14))
-    c.log_every = 50
-    c.progress_bar = True
+    )
+    c.data.max_instances = 8
     return c
 
 

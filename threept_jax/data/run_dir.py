@@ -1,0 +1,178 @@
+"""The run directory of a 3PT-D training run: the one home of its on-disk format.
+
+Training (``train/``) writes it, inference (``infer/checkpoint.py``) reads it; neither imports the
+other, both import this module::
+
+    <workdir>/
+      config.json            the whole run config (ml_collections JSON), CONFIG_FILE
+      detector.json          the DetectorConfig (``DetectorConfig.to_dict()``), MODEL_FILE:
+                             inference rebuilds the model from it
+      checkpoints/<step>/    one Orbax ``CheckpointManager`` step, CHECKPOINT_DIR, holding the
+                             composite items
+        state/               {"step", "params", "opt_state"} (STATE_ITEM, ``StandardSave``)
+        data/                the grain iterator, one JSON file per process (DATA_ITEM)
+        metrics/             the evaluation metrics saved with the step (Orbax's own item,
+                             written when the manager has a ``best_fn``)
+      tb/                    TensorBoard event files, TB_DIR
+
+The best checkpoint is the one with the best ``checkpoint.best_metric`` of config.json
+(``checkpoint.best_mode`` "max" or "min") among the kept steps saved with that metric
+(:func:`best_step`); the preservation policy of training and the choice of inference use the same
+:func:`metric_fn`. Writes are atomic (:mod:`threept_jax.data.files`).
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from threept_jax.data.files import atomic_write_bytes, atomic_write_json
+from threept_jax.models.configs import DetectorConfig
+
+CONFIG_FILE = "config.json"
+MODEL_FILE = "detector.json"
+CHECKPOINT_DIR = "checkpoints"
+TB_DIR = "tb"
+STATE_ITEM = "state"
+DATA_ITEM = "data"
+
+#: DetectorConfig fields that change how the model computes, not its parameters: a run may
+#: resume (or be loaded) with other values.
+COMPUTE_ONLY_FIELDS = ("dtype", "attention_impl", "remat")
+
+
+class RunDir:
+    """Paths, side files and checkpoint listing of one run directory (module docstring)."""
+
+    def __init__(self, workdir):
+        # Orbax refuses relative paths; resolve once here for every reader and writer.
+        self.path = pathlib.Path(workdir).expanduser().resolve()
+
+    @property
+    def config_file(self) -> pathlib.Path:
+        return self.path / CONFIG_FILE
+
+    @property
+    def model_file(self) -> pathlib.Path:
+        return self.path / MODEL_FILE
+
+    @property
+    def checkpoint_dir(self) -> pathlib.Path:
+        return self.path / CHECKPOINT_DIR
+
+    @property
+    def tb_dir(self) -> pathlib.Path:
+        return self.path / TB_DIR
+
+    # -- side files ----------------------------------------------------------------------
+
+    def write_config(self, config_json: str) -> None:
+        """``config.json``: the whole run config as JSON text (``to_json_best_effort``)."""
+        atomic_write_bytes(self.config_file, config_json.encode())
+
+    def write_model_config(self, model_cfg: DetectorConfig) -> None:
+        """``detector.json``: the model config inference rebuilds the detector from."""
+        atomic_write_json(self.model_file, model_cfg.to_dict(), indent=2, sort_keys=True)
+
+    def read_config(self) -> dict[str, Any]:
+        """The run config as a plain dict ({} when the run wrote none)."""
+        return json.loads(self.config_file.read_text()) if self.config_file.exists() else {}
+
+    def read_model_config(self, dtype: str | None = None) -> DetectorConfig:
+        """The run's DetectorConfig, with the compute ``dtype`` replaced when given."""
+        if not self.model_file.exists():
+            raise FileNotFoundError(
+                f"{self.model_file} not found: {self.path} is not a 3PT-D training workdir "
+                "(train one with `python train/launch.py --config train/configs/detector.py:tiny "
+                "--workdir DIR`)")
+        fields = json.loads(self.model_file.read_text())
+        if dtype is not None:
+            fields["dtype"] = dtype
+        return DetectorConfig(**fields)
+
+    def check_same_model(self, model_cfg: DetectorConfig) -> None:
+        """Refuse to resume a run of another model into this workdir, naming both.
+
+        Compares ``model_cfg`` with the saved detector.json, ignoring
+        :data:`COMPUTE_ONLY_FIELDS`; does nothing when the workdir holds no model config.
+        """
+        if not self.model_file.exists():
+            return
+        saved = json.loads(self.model_file.read_text())
+        new = model_cfg.to_dict()
+        diff = sorted(k for k in set(saved) | set(new)
+                      if k not in COMPUTE_ONLY_FIELDS and saved.get(k) != new.get(k))
+        if diff:
+            changes = ", ".join(f"{k}={saved.get(k)!r} (config: {new.get(k)!r})" for k in diff)
+            raise ValueError(
+                f"this workdir holds a {saved.get('variant')} run whose model differs from the "
+                f"config's {new.get('variant')}: {changes}. Resume it with the run's own config "
+                f"({self.config_file}) or pass a fresh --workdir")
+
+    # -- checkpoints ---------------------------------------------------------------------
+
+    def checkpoint_steps(self) -> list[int]:
+        """Steps with a finished checkpoint (Orbax's commit marker or a state item), sorted."""
+        if not self.checkpoint_dir.is_dir():
+            return []
+        return sorted(int(p.name) for p in self.checkpoint_dir.iterdir() if p.name.isdigit()
+                      and ((p / "commit_success.txt").exists() or (p / STATE_ITEM).is_dir()))
+
+    def best_metric(self) -> tuple[str | None, str]:
+        """(``checkpoint.best_metric``, ``checkpoint.best_mode``) of config.json."""
+        ckpt = self.read_config().get("checkpoint", {})
+        return ckpt.get("best_metric") or None, ckpt.get("best_mode", "max")
+
+    def _metrics_manager(self):
+        """A read-only view of the metrics saved with each step (None: the run tracks none)."""
+        import orbax.checkpoint as ocp
+
+        metric, mode = self.best_metric()
+        if metric is None or not self.checkpoint_dir.is_dir():
+            return None
+        options = ocp.CheckpointManagerOptions(best_fn=metric_fn(metric), best_mode=mode,
+                                               read_only=True)
+        return ocp.CheckpointManager(self.checkpoint_dir, options=options)
+
+    def saved_metrics(self, step: int) -> dict[str, float]:
+        """The evaluation metrics saved with checkpoint ``step`` ({} if none)."""
+        manager = self._metrics_manager()
+        if manager is None:
+            return {}
+        with manager:
+            return dict(manager.metrics(step) or {})
+
+    def best_step(self) -> int:
+        """The kept step with the best saved ``best_metric``, else the latest step."""
+        steps = self.checkpoint_steps()
+        if not steps:
+            raise FileNotFoundError(f"no checkpoint under {self.checkpoint_dir}: the run saved "
+                                    "none yet")
+        manager = self._metrics_manager()
+        if manager is None:
+            return steps[-1]
+        with manager:
+            best = manager.best_step()
+        return steps[-1] if best is None or best not in steps else int(best)
+
+    def resolve_step(self, step: int | str) -> int:
+        """``"best"``, ``"latest"`` or a step number -> a step that has a checkpoint."""
+        steps = self.checkpoint_steps()
+        if not steps:
+            raise FileNotFoundError(f"no checkpoint under {self.checkpoint_dir}: the run saved "
+                                    "none yet")
+        if step == "best":
+            return self.best_step()
+        if step == "latest":
+            return steps[-1]
+        if isinstance(step, str) and not step.isdigit() or int(step) not in steps:
+            raise ValueError(f"no checkpoint at step {step!r} in {self.checkpoint_dir}; "
+                             f"available: {steps} (or 'best', 'latest')")
+        return int(step)
+
+
+def metric_fn(name: str) -> Callable[[Mapping[str, float]], float]:
+    """The value checkpoints are ranked by: ``metrics[name]`` as a float."""
+    return lambda metrics: float(metrics[name])
