@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from threept_jax.geometry.boxes import cxcywh_to_xyxy, nms
+from threept_jax.geometry.boxes import cxcywh_to_xyxy
 
 Array = jax.Array
 
@@ -199,51 +199,3 @@ def interior_edge_mask(boxes: Array, layout: TileLayout, margin_px: float = 2.0)
     near = jnp.stack([xyxy[..., 0] <= margin_px, xyxy[..., 1] <= margin_px,
                       xyxy[..., 2] >= t - margin_px, xyxy[..., 3] >= t - margin_px], -1)
     return jnp.any(near & jnp.asarray(inner)[:, None, :], -1)
-
-
-def merge_detections(boxes: Array, scores: Array, *, iou_threshold: float = 0.5,
-                     max_outputs: int = 100, pre_nms_topk: int = 2000,
-                     score_threshold: float = -jnp.inf, valid: Array | None = None,
-                     across_objects: bool = True) -> dict[str, Array]:
-    """NMS over all tiles, scales and objects of one image.
-
-    Args:
-      boxes: [O, N, P, 4] full-image xyxy (``tile_boxes_to_image``), for O query objects.
-      scores: [O, N, P] detection scores.
-      valid: [O, N, P] candidates allowed (e.g. not ``interior_edge_mask``).
-      across_objects: suppress overlapping boxes of different objects too (a region holds
-        one object); if False, only boxes of the same object suppress each other.
-      pre_nms_topk: candidates kept by score before the O(K * candidates) NMS.
-
-    Returns ``boxes`` [K, 4], ``scores`` [K], ``object_index``, ``tile_index``,
-    ``patch_index`` [K] int32 and ``valid`` [K] (K = max_outputs; invalid rows are padding).
-    """
-    boxes = jnp.asarray(boxes, jnp.float32)
-    scores = jnp.asarray(scores, jnp.float32)
-    if boxes.ndim != 4 or boxes.shape[:3] != scores.shape:
-        raise ValueError(f"boxes [O, N, P, 4] and scores [O, N, P] disagree: {boxes.shape}, "
-                         f"{scores.shape}")
-    _, n, p = scores.shape
-    flat_boxes = boxes.reshape(-1, 4)
-    flat_scores = scores.reshape(-1)
-    if valid is not None:
-        flat_scores = jnp.where(jnp.asarray(valid, bool).reshape(-1), flat_scores, -jnp.inf)
-    k = min(pre_nms_topk, flat_scores.shape[0])
-    top_scores, top = jax.lax.top_k(flat_scores, k)
-    top_boxes = flat_boxes[top]
-    obj = (top // (n * p)).astype(jnp.int32)
-    nms_boxes = top_boxes
-    if not across_objects:
-        # Batched-NMS trick: shift each object's boxes to a disjoint region of the plane.
-        span = jnp.max(jnp.abs(top_boxes)) * 2.0 + 1.0
-        nms_boxes = top_boxes + (obj.astype(jnp.float32) * span)[:, None]
-    keep, ok = nms(nms_boxes, top_scores, iou_threshold, max_outputs, score_threshold)
-    idx = top[keep]
-    return {
-        "boxes": jnp.where(ok[:, None], top_boxes[keep], 0.0),
-        "scores": jnp.where(ok, top_scores[keep], 0.0),
-        "object_index": jnp.where(ok, obj[keep], -1),
-        "tile_index": jnp.where(ok, (idx // p) % n, -1).astype(jnp.int32),
-        "patch_index": jnp.where(ok, idx % p, -1).astype(jnp.int32),
-        "valid": ok,
-    }
