@@ -25,10 +25,9 @@ from scipy.spatial.transform import Rotation
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from threept_jax.eval.symmetry import symmetry_transforms  # noqa: E402
-
 from threept_jax.data import bop  # noqa: E402
 from threept_jax.eval.bop_eval import evaluate_pose_results  # noqa: E402
+from threept_jax.geometry.symmetry import Symmetries, symmetry_transforms  # noqa: E402
 from threept_jax.testing.bop_synthetic import SyntheticInstance, write_synthetic_dataset  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "meshes" / "bop"
@@ -65,9 +64,9 @@ def load_meshes(tmp: pathlib.Path) -> dict[int, bop.ObjectModel]:
         path = tmp / f"proc_{new_id}.ply"
         path.write_bytes(trimesh.exchange.ply.export_ply(mesh, encoding="ascii"))
         syms = (
-            bop.Symmetries(discrete=[np.diag([-1.0, -1.0, 1.0, 1.0])])
+            Symmetries(discrete=[np.diag([-1.0, -1.0, 1.0, 1.0])])
             if new_id % 3 == 0
-            else bop.Symmetries()
+            else Symmetries()
         )
         models[new_id] = bop.compute_model_info(mesh.vertices, syms, new_id, path)
     return models

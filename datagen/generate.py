@@ -53,6 +53,7 @@ from datagen import meshes as M
 from datagen import procedural as P
 from datagen import scene as S
 from threept_jax.data import bop
+from threept_jax.data.files import atomic_write_bytes
 from threept_jax.geometry.symmetry import Symmetries
 
 GENERATOR = "threept_jax.datagen"
@@ -175,7 +176,7 @@ def _manifest_identity(m: dict[str, Any]) -> dict[str, Any]:
 
 def _write_json(path: pathlib.Path, content: Any) -> None:
     data = (json.dumps(content, indent=1, sort_keys=True) + "\n").encode()
-    bop.atomic_write_bytes(path, data)
+    atomic_write_bytes(path, data)
 
 
 def check_output(out: pathlib.Path, split_dir: pathlib.Path, manifest: dict[str, Any]) -> None:

@@ -153,7 +153,7 @@ def resize_renders(images: np.ndarray, size: int | None) -> np.ndarray:
 def bank_symmetries(symmetries: Symmetries, max_sym_disc_step: float = BANK_SYM_DISC_STEP
                     ) -> np.ndarray:
     """[S, 4, 4] float32 symmetry transforms of a bank, identity first (BOP construction,
-    :func:`threept_jax.eval.symmetry.symmetry_transforms`, with the bank's coarser step)."""
+    :func:`threept_jax.geometry.symmetry.symmetry_transforms`, with the bank's coarser step)."""
     R, t = symmetry_transforms(symmetries, max_sym_disc_step)
     out = np.zeros((len(R), 4, 4), np.float32)
     out[:, :3, :3] = R
