@@ -191,8 +191,8 @@ def test_two_processes_train_like_one_and_restore(toy, tmp_path):
         [sys.executable, str(ROOT / "tests" / "train" / "multiprocess_worker.py"),
          str(cfg_file), str(tmp_path / "multi"), str(tmp_path / f"p{i}.npz")],
         env={**SUBPROCESS_ENV, "JAX_COORDINATOR_ADDRESS": f"127.0.0.1:{port}",
-             "JAX_NUM_PROCESSES": "2", "JOB_COMPLETION_INDEX": str(i)}, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-        text=True) for i in range(2)]
+             "JAX_NUM_PROCESSES": "2", "JOB_COMPLETION_INDEX": str(i)},
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for i in range(2)]
     try:
         outs = [p.communicate(timeout=300)[0] for p in procs]
     finally:
