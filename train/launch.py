@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import re
 import sys
+from typing import NoReturn
 
 from absl import app, flags, logging
 from ml_collections import config_flags
@@ -28,7 +29,7 @@ flags.mark_flags_as_required(["config", "workdir"])
 _OVERRIDE = re.compile(r"^--?config\.([^=\s]+)")
 
 
-def _fail(message: str) -> None:
+def _fail(message: str) -> NoReturn:
     sys.stderr.write(f"launch.py: {message}\n")
     sys.exit(2)
 
@@ -55,7 +56,6 @@ def parse_flags(argv: list[str]) -> list[str]:
                 except run_config.ConfigError as bad:
                     _fail(f"{bad} (in {arg.split('=')[0]})")
         _fail(f"a --config override names a key the config file does not define: {e}")
-    raise AssertionError("unreachable")
 
 
 def main(argv) -> None:

@@ -75,7 +75,7 @@ def test_unknown_config_keys_stop_the_launcher_before_compiling(tmp_path):
         assert not work.exists(), (where, key)
 
 
-def test_every_detector_field_can_be_set_from_the_config():
+def test_every_detector_field_can_be_set_from_the_config(monkeypatch):
     """Each DetectorConfig field, set to a non-default value in the config, reaches the built
     dataclass (no hand-copied field list that can drop one)."""
     other = {
@@ -95,6 +95,20 @@ def test_every_detector_field_can_be_set_from_the_config():
         value = getattr(built, name)
         expected = jnp.dtype(other[name]) if name.endswith("dtype") else other[name]
         assert value == expected != getattr(defaults, name), name
+    # On the command line too, for fields the config file does not mention (a typed None
+    # default such as embed_dim included).
+    from absl import flags
+    from ml_collections import config_flags
+
+    argv = ["launch.py", f"--config={ROOT / 'train' / 'configs' / 'detector.py'}:tiny",
+            "--config.model.num_prior_views=6", "--config.model.embed_dim=96",
+            "--config.model.attention_impl=xla"]
+    monkeypatch.setattr(sys, "argv", argv)  # ml_collections reads the overrides from sys.argv
+    fv = flags.FlagValues()
+    config_flags.DEFINE_config_file("config", None, "", flag_values=fv, lock_config=True)
+    fv(argv)
+    built = run_config.model_config(fv.config)
+    assert (built.num_prior_views, built.embed_dim, built.attention_impl) == (6, 96, "xla")
     # The other sections are exactly their dataclasses' fields, at the defaults unless the
     # config overrides them.
     c = detector_configs.get_config("tiny")
@@ -177,8 +191,8 @@ def test_two_processes_train_like_one_and_restore(toy, tmp_path):
         [sys.executable, str(ROOT / "tests" / "train" / "multiprocess_worker.py"),
          str(cfg_file), str(tmp_path / "multi"), str(tmp_path / f"p{i}.npz")],
         env={**SUBPROCESS_ENV, "JAX_COORDINATOR_ADDRESS": f"127.0.0.1:{port}",
-             "JAX_NUM_PROCESSES": "2", "JOB_COMPLETION_INDEX": str(i)}, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-        text=True) for i in range(2)]
+             "JAX_NUM_PROCESSES": "2", "JOB_COMPLETION_INDEX": str(i)},
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for i in range(2)]
     try:
         outs = [p.communicate(timeout=300)[0] for p in procs]
     finally:
