@@ -4,7 +4,8 @@
 Kubernetes indexed Job (``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES``,
 ``JOB_COMPLETION_INDEX``): joins the job as ``train/launch.py`` does
 (``sharding.maybe_initialize_distributed``; gloo collectives, one CPU device per process),
-trains steps 1 and 2 by hand, saves a checkpoint, builds a second trainer from the workdir (a restore) and runs it with ``DetectorTrainer.run``.
+trains steps 1 and 2 by hand, saves a checkpoint, builds a second trainer from the workdir (a
+restore) and runs it with ``DetectorTrainer.run``.
 Process 0 sends itself SIGTERM once step 3 is logged; JAX's preemption service tells both
 processes, which save at the step they agree on and return. Writes this process's batches (its
 slice of each global batch), the loss of every step and the step saved on SIGTERM to OUT_NPZ.
