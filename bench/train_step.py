@@ -21,7 +21,6 @@ everywhere; ``B/16`` (512 px, 224 px renders, bf16, remat) when an accelerator i
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import jax
@@ -127,8 +126,7 @@ def bench_variant(variant: str, steps: int, accel: bool, batch_override: int | N
                         remat=variant == "B/16" and accel)
     model_cfg = td.model_config(config)
     loss_cfg = DetectorLossConfig()
-    optim_key = json.dumps(config.optim.to_dict(), sort_keys=True)
-    compiled_step = td.build_step(model_cfg, loss_cfg, optim_key, 1000, 0, mesh,
+    compiled_step = td.build_step(model_cfg, loss_cfg, config.optim, 1000, 0, mesh,
                                       config.mesh.fsdp_min_size)
     host = synthetic_batch(np.random.default_rng(0), batch, tile, render, num_t, max_inst)
     device_batch = sharding.global_batch(host, mesh)
