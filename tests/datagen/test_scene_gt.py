@@ -187,10 +187,10 @@ def test_models_info_and_reader(single):
         v = load_ply_vertices(m.path)
         assert m.diameter == pytest.approx(pdist(v).max(), rel=1e-9)
         rec = pool.records[oid - 1]
-        assert len(m.symmetries.discrete) == len(rec.symmetries_discrete)
+        assert len(m.symmetries.discrete) == len(rec.symmetries.discrete)
         np.testing.assert_allclose(m.symmetries.discrete.reshape(-1, 16),
-                                   np.reshape(rec.symmetries_discrete, (-1, 16)), atol=1e-9)
-        assert len(m.symmetries.continuous) == len(rec.symmetries_continuous)
+                                   np.reshape(rec.symmetries.discrete, (-1, 16)), atol=1e-9)
+        assert len(m.symmetries.continuous) == len(rec.symmetries.continuous)
     scene = ds.split("train_pbr").scene(0)
     rgb = scene.image(0)
     assert rgb.shape == (H, W, 3) and rgb.dtype == np.uint8 and 10 < rgb.mean() < 245
