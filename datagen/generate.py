@@ -53,7 +53,7 @@ from datagen import meshes as M
 from datagen import procedural as P
 from datagen import scene as S
 from threept_jax.data import bop
-from threept_jax.data.files import atomic_write_bytes
+from threept_jax.data.files import atomic_write_json
 from threept_jax.geometry.symmetry import Symmetries
 
 GENERATOR = "threept_jax.datagen"
@@ -174,11 +174,6 @@ def _manifest_identity(m: dict[str, Any]) -> dict[str, Any]:
     return {k: m.get(k) for k in keys}
 
 
-def _write_json(path: pathlib.Path, content: Any) -> None:
-    data = (json.dumps(content, indent=1, sort_keys=True) + "\n").encode()
-    atomic_write_bytes(path, data)
-
-
 def check_output(out: pathlib.Path, split_dir: pathlib.Path, manifest: dict[str, Any]) -> None:
     """Refuse an output folder that holds another configuration or another shard."""
     mpath = split_dir / "manifest.json"
@@ -278,7 +273,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     }
     split_dir.mkdir(parents=True, exist_ok=True)
     check_output(out, split_dir, manifest)
-    _write_json(split_dir / "manifest.json", manifest)
+    atomic_write_json(split_dir / "manifest.json", manifest, indent=1, sort_keys=True)
     models_dir.mkdir(parents=True, exist_ok=True)
     update_models_info(models_dir, pool)
 
@@ -304,7 +299,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             S.remove_tree(final)
         res = S.generate_scene(tmp, s, scene_rng(args.seed, args.split, s), assets, candidates,
                                cfg, on_image=lambda: bar.update(1))
-        _write_json(tmp / INFO_FILE, res.info)
+        atomic_write_json(tmp / INFO_FILE, res.info, indent=1, sort_keys=True)
         os.replace(tmp, final)
         update_models_info(models_dir, pool)
         for f in dataclasses.fields(totals):
@@ -333,7 +328,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         skipped_meshes=len(skipped),
         skipped_mesh_reasons=dict(sorted(skipped.items())),
     )
-    _write_json(split_dir / "manifest.json", manifest)
+    atomic_write_json(split_dir / "manifest.json", manifest, indent=1, sort_keys=True)
     if not args.quiet:
         t = totals
         spent = t.physics + t.compose + t.render + t.annotate + t.write

@@ -53,7 +53,7 @@ import numpy as np
 # used).
 from threept_jax.data import bop, records
 from threept_jax.data.banks import BANK_SIZE, BANK_TEMPLATES
-from threept_jax.data.files import atomic_path, atomic_write_bytes
+from threept_jax.data.files import atomic_path, atomic_write_json
 
 SHARD_PATTERN = "shard-{:05d}-of-{:05d}.array_record"
 TABLE = "objects.json"
@@ -160,8 +160,7 @@ def _write_table(out: pathlib.Path, table: dict[int, dict[str, Any]]) -> None:
     """``objects.json`` (``threept_jax.data.banks.load_object_table`` format, plus ``mesh``,
     ``mesh_sha256``, ``source`` and ``source_obj_id``), keys in numeric order."""
     rows = {str(k): table[k] for k in sorted(table)}
-    atomic_write_bytes(out / TABLE, (json.dumps(rows, indent=1, sort_keys=True) + "\n")
-                            .encode())
+    atomic_write_json(out / TABLE, rows, indent=1, sort_keys=True)
 
 
 def assign_objects(
@@ -388,8 +387,7 @@ def pack(
                     for s, n, m in zip(sources, counts, maps)],
         "image_format": image_format,
     }
-    atomic_write_bytes(folder / "index.json",
-                            (json.dumps(index, indent=1, sort_keys=True) + "\n").encode())
+    atomic_write_json(folder / "index.json", index, indent=1, sort_keys=True)
     if banks:
         from datagen import banks as DB
 

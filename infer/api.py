@@ -26,6 +26,7 @@ import numpy as np
 
 from infer.checkpoint import load_detector
 from infer.detect import SceneDetector
+from infer.masks import PoseRenderer
 from infer.onboarding import OnboardedObject, Onboarder
 from infer.scene import Instance, find_instances
 from threept_jax.data.banks import BANK_TEMPLATES
@@ -53,6 +54,7 @@ class Models:
     step: int
     onboarder: Onboarder
     _scene_detectors: dict = dataclasses.field(default_factory=dict, repr=False)
+    _pose_renderers: dict = dataclasses.field(default_factory=dict, repr=False)
 
     def onboard(self, meshes: Mapping[int, str | os.PathLike | Mesh], units: str = "mm"
                 ) -> list[OnboardedObject]:
@@ -62,11 +64,20 @@ class Models:
     def scene_detector(self, objects: Sequence[OnboardedObject], **options: Any) -> SceneDetector:
         """The :class:`SceneDetector` of these objects and options, built once and reused, so
         its compiled functions (one per image size) survive across calls."""
-        key = (tuple(o.obj_id for o in objects), tuple(sorted(options.items())))
+        key = (tuple(o.obj_id for o in objects),
+               tuple(sorted((k, tuple(np.ravel(v)) if np.ndim(v) else v)
+                            for k, v in options.items())))
         if key not in self._scene_detectors:
             self._scene_detectors[key] = SceneDetector(self.detector, self.config, objects,
                                                        **options)
         return self._scene_detectors[key]
+
+    def pose_renderer(self, objects: Sequence[OnboardedObject]) -> PoseRenderer:
+        """The mask renderer of these objects, built once (its meshes are prepared once)."""
+        key = tuple(o.obj_id for o in objects)
+        if key not in self._pose_renderers:
+            self._pose_renderers[key] = PoseRenderer(objects)
+        return self._pose_renderers[key]
 
 
 def load(workdir, step: int | str = "best", *, cache_dir=DEFAULT_CACHE,
@@ -112,7 +123,9 @@ def run_scene(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarra
     """
     if isinstance(objects, Mapping):
         objects = models.onboard(objects, units=units)
+    objects = list(objects)
     Ks, T_cam_world = _views(cameras)
-    detector = models.scene_detector(list(objects), **detector_options)
+    detector = models.scene_detector(objects, **detector_options)
+    renderer = models.pose_renderer(objects) if with_masks else None
     return find_instances(detector, images, Ks, T_cam_world, with_masks=with_masks,
-                          min_views=min_views)
+                          min_views=min_views, renderer=renderer)

@@ -88,25 +88,26 @@ def _read_rgb(path) -> np.ndarray:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
-def _cameras(args, n: int) -> tuple[list[np.ndarray], np.ndarray | None]:
+def _cameras(args, n: int) -> list[Camera]:
+    """One Camera per image, from --cameras FILE or --K (single view)."""
     if args.cameras is not None:
         cams = json.loads(args.cameras.read_text())
         if len(cams) != n:
             raise SystemExit(f"error: {args.cameras} has {len(cams)} cameras for {n} images")
-        Ks = [np.asarray(c["K"], np.float64) for c in cams]
-        T = [c.get("T_cam_world") for c in cams]
-        T = None if all(t is None for t in T) else np.asarray(T, np.float32)
-        return Ks, T
+        for i, c in enumerate(cams):
+            if not isinstance(c, dict) or "K" not in c:
+                raise SystemExit(f"error: {args.cameras} camera {i} has no \"K\" (3x3 in pixels)")
+        return [Camera(c["K"], T_cam_world=c.get("T_cam_world")) for c in cams]
     if not args.K or len(args.K) != n:
         raise SystemExit(f"error: give one --K fx,fy,cx,cy per image ({n}) or --cameras FILE")
-    Ks = []
+    cameras = []
     for k in args.K:
         try:
             fx, fy, cx, cy = (float(v) for v in k.split(","))
         except ValueError:
             raise SystemExit(f"error: --K {k!r} must be four numbers fx,fy,cx,cy (pixels)") from None
-        Ks.append(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]))
-    return Ks, None
+        cameras.append(Camera(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])))
+    return cameras
 
 
 def run_images(args) -> list:
@@ -120,11 +121,9 @@ def run_images(args) -> list:
             raise SystemExit(f"error: --mesh {item!r} must be ID=PATH with an integer id")
         meshes[int(key)] = path
     images = [_read_rgb(p) for p in args.image]
-    Ks, T_cam_world = _cameras(args, len(images))
+    cameras = _cameras(args, len(images))
     models = load_models(args)
     objects = models.onboard(meshes, units=args.units)
-    cameras = [Camera(K, T_cam_world=None if T_cam_world is None else T_cam_world[v])
-               for v, K in enumerate(Ks)]
     start = time.perf_counter()
     instances = run_scene(images, cameras, objects, models, **detector_options(args))
     elapsed = time.perf_counter() - start
@@ -137,7 +136,7 @@ def run_images(args) -> list:
     for v, (img, path) in enumerate(zip(images, args.image)):
         if v >= args.overlays:
             break
-        T_cw = np.eye(4) if T_cam_world is None else T_cam_world[v]
+        T_cw = np.eye(4) if cameras[v].T_cam_world is None else cameras[v].T_cam_world
         drawn = [Detection(x.obj_id, x.boxes.get(v, np.zeros(4)), x.score, (T_cw @ x.T_world_obj)[None],
                            x.hypothesis_scores[:1], np.zeros(0)) for x in instances]
         canvas = draw_detections(img, drawn, [x.masks[v] for x in instances])

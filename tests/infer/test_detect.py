@@ -126,7 +126,7 @@ def test_public_api_runs_the_stages_and_reuses_compiled_detectors(pipeline):
         np.testing.assert_array_equal(a.masks[0], b.masks[0])
     # Same objects and options: the same SceneDetector (and its compiled function) is reused.
     infer.run_scene([image], [K], objects, models, **options)
-    assert len(models._scene_detectors) == 1
+    assert len(models._scene_detectors) == 1 and len(models._pose_renderers) == 1
     rig = [infer.Camera(K, T_cam_world=np.eye(4)), infer.Camera(K)]
     with pytest.raises(ValueError, match="every camera carries T_cam_world"):
         infer.run_scene([image, image], rig, objects, models, **options)

@@ -159,12 +159,12 @@ class RunDir:
 
     def resolve_step(self, step: int | str) -> int:
         """``"best"``, ``"latest"`` or a step number -> a step that has a checkpoint."""
+        if step == "best":
+            return self.best_step()
         steps = self.checkpoint_steps()
         if not steps:
             raise FileNotFoundError(f"no checkpoint under {self.checkpoint_dir}: the run saved "
                                     "none yet")
-        if step == "best":
-            return self.best_step()
         if step == "latest":
             return steps[-1]
         if isinstance(step, str) and not step.isdigit() or int(step) not in steps:
