@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import pathlib
@@ -37,20 +38,40 @@ def write_json_atomic(path, content) -> None:
 
 
 def _load_json(path: pathlib.Path):
+    """Parse a JSON file; any unreadable content is a ValueError naming the file."""
     if not path.is_file():
         raise FileNotFoundError(f"missing BOP file {path}")
     try:
-        with open(path) as f:
+        with open(path, encoding="utf-8") as f:
             return json.load(f)
     except json.JSONDecodeError as e:
         raise ValueError(f"{path} is not valid JSON ({e}); the file is probably truncated") from e
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path} is not UTF-8 text ({e}): is it a JSON file?") from None
+    except (ValueError, RecursionError) as e:  # e.g. an integer literal of 5000 digits
+        raise ValueError(f"{path} cannot be read as BOP JSON ({type(e).__name__}: {e})") from None
 
 
-def _int_keys(d: Mapping, path) -> dict:
+def _int_keys(d, path) -> dict:
+    """``{"12": v}`` -> ``{12: v}``: BOP keys per-image files by the image id as a string."""
+    if not isinstance(d, Mapping):
+        raise ValueError(f"{path}: expected a JSON object keyed by id, got {type(d).__name__}")
     out = {}
     for k, v in d.items():
         try:
             out[int(k)] = v
         except ValueError:
-            raise ValueError(f"{path}: key {k!r} is not an integer image id") from None
+            raise ValueError(f"{path}: key {k!r} is not an integer id") from None
     return out
+
+
+@contextlib.contextmanager
+def entry_errors(where: str, expected: str):
+    """Report a structurally wrong JSON entry (a missing key, a list where a number belongs, a
+    wrong length) as a ValueError naming the entry and the expected form, instead of the
+    TypeError or KeyError it raises deep inside the parsing."""
+    try:
+        yield
+    except (KeyError, TypeError, IndexError, AttributeError, OverflowError) as e:
+        raise ValueError(
+            f"{where}: malformed entry ({type(e).__name__}: {e}); expected {expected}") from None
