@@ -92,9 +92,10 @@ def load(workdir, step: int | str = "best", *, cache_dir=DEFAULT_CACHE,
                                               num_templates=num_templates))
 
 
-def _views(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarray]
-           ) -> tuple[list[np.ndarray], np.ndarray | None]:
-    """Ks [V] in pixels of each image (rescaled from a camera's ``calibration_hw``) and
+def prepare_views(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarray]
+                  ) -> tuple[list[np.ndarray], np.ndarray | None]:
+    """The checked cameras of a scene (``run_scene`` calls it; CLIs call it before loading
+    models): Ks [V] in pixels of each image (rescaled from a camera's ``calibration_hw``) and
     T_cam_world [V, 4, 4] (None when no camera carries one)."""
     if len(cameras) != len(images):
         raise ValueError(f"{len(images)} images but {len(cameras)} cameras: give one per image")
@@ -131,7 +132,7 @@ def run_scene(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarra
     Returns :class:`infer.scene.Instances`, best first, with ``best_score`` (the best
     detection score in any view, kept or not).
     """
-    Ks, T_cam_world = _views(images, cameras)  # before onboarding: bad cameras fail fast
+    Ks, T_cam_world = prepare_views(images, cameras)  # before onboarding: fail fast
     if isinstance(objects, Mapping):
         objects = models.onboard(objects, units=units)
     objects = list(objects)

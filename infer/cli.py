@@ -16,7 +16,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from infer.api import DEFAULT_CACHE, Camera, load, run_scene
+from infer.api import DEFAULT_CACHE, Camera, load, prepare_views, run_scene
 from threept_jax.geometry.validate import validate_intrinsics, validate_rigid
 
 
@@ -196,6 +196,7 @@ def run_images(args) -> list:
         meshes[int(key)] = path
     cameras = _cameras(args, len(args.image))
     images = [_read_rgb(p) for p in args.image]
+    prepare_views(images, cameras)  # K against each image's size, before the slow work
     models = load_models(args)
     objects = models.onboard(meshes, units=args.units)
     start = time.perf_counter()
