@@ -108,7 +108,6 @@ def test_camera_with_a_bad_bottom_row_is_labelled_t_cam_world(tmp_path):
     ("--num-scales", "0", "argument --num-scales: must be >= 1"),
     ("--score-threshold", "1.5", "argument --score-threshold: must be in [0, 1]"),
     ("--score-threshold", "nan", "argument --score-threshold: must be in [0, 1]"),
-    ("--score-threshold", "abc", "argument --score-threshold: must be a number"),
     ("--max-detections", "0", "argument --max-detections: must be >= 1"),
     ("--overlays", "-1", "argument --overlays: must be >= 0"),
     ("--step", "newest", "argument --step: must be best, latest or a step number"),
