@@ -28,9 +28,10 @@ from infer.checkpoint import load_detector
 from infer.detect import SceneDetector
 from infer.masks import PoseRenderer
 from infer.onboarding import OnboardedObject, Onboarder
-from infer.scene import Instance, find_instances
+from infer.scene import Instances, find_instances
 from threept_jax.data.banks import BANK_TEMPLATES
 from threept_jax.data.bop import Camera
+from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.models.configs import DetectorConfig
 from threept_jax.models.detector import Detector
 from threept_jax.render import Mesh
@@ -91,40 +92,50 @@ def load(workdir, step: int | str = "best", *, cache_dir=DEFAULT_CACHE,
                                               num_templates=num_templates))
 
 
-def _views(cameras: Sequence[Camera | np.ndarray]) -> tuple[list[np.ndarray], np.ndarray | None]:
-    """Ks [V] and T_cam_world [V, 4, 4] (None when no camera carries one)."""
+def prepare_views(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarray]
+                  ) -> tuple[list[np.ndarray], np.ndarray | None]:
+    """The checked cameras of a scene (``run_scene`` calls it; CLIs call it before loading
+    models): Ks [V] in pixels of each image (rescaled from a camera's ``calibration_hw``) and
+    T_cam_world [V, 4, 4] (None when no camera carries one)."""
+    if len(cameras) != len(images):
+        raise ValueError(f"{len(images)} images but {len(cameras)} cameras: give one per image")
     cams = [c if isinstance(c, Camera) else Camera(np.asarray(c)) for c in cameras]
+    Ks = [validate_intrinsics(c.K, f"camera {v} K", image_hw=np.shape(img)[:2],
+                              calibration_hw=c.calibration_hw)
+          for v, (img, c) in enumerate(zip(images, cams))]
     Ts = [c.T_cam_world for c in cams]
     if all(t is None for t in Ts):
-        return [c.K for c in cams], None
+        return Ks, None
     if any(t is None for t in Ts):
         raise ValueError("either every camera carries T_cam_world (several views of one rig) or "
                          "none does (one view)")
-    return [c.K for c in cams], np.stack(Ts).astype(np.float32)
+    return Ks, np.stack(Ts).astype(np.float32)
 
 
 def run_scene(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarray],
               objects: Sequence[OnboardedObject] | Mapping[int, str | os.PathLike | Mesh],
               models: Models, *, units: str = "mm", with_masks: bool = True,
-              min_views: int = 3, **detector_options: Any) -> list[Instance]:
+              min_views: int = 3, **detector_options: Any) -> Instances:
     """Every instance of the objects in a scene seen by one or several calibrated RGB views.
 
     Args:
       images: V uint8 RGB images [H, W, 3].
-      cameras: V cameras: a ``Camera`` (K [3, 3] in pixels of that image, and for several
-        views ``T_cam_world`` [4, 4], world -> camera, mm), or a bare K for a single view.
+      cameras: V cameras: a ``Camera`` (K [3, 3] in pixels of that image, or of the image
+        size ``calibration_hw`` (H, W) it was calibrated at, then rescaled to the image; for
+        several views ``T_cam_world`` [4, 4], world -> camera, mm), or a bare K.
       objects: onboarded objects, or ``{obj_id: mesh}`` to onboard (``units`` of the meshes).
       models: from :func:`load`.
       with_masks, min_views: see :func:`infer.scene.find_instances`.
       detector_options: :class:`SceneDetector` options (``num_scales``, ``score_threshold``,
         ``max_detections``, ...).
 
-    Returns instances, best first.
+    Returns :class:`infer.scene.Instances`, best first, with ``best_score`` (the best
+    detection score in any view, kept or not).
     """
+    Ks, T_cam_world = prepare_views(images, cameras)  # before onboarding: fail fast
     if isinstance(objects, Mapping):
         objects = models.onboard(objects, units=units)
     objects = list(objects)
-    Ks, T_cam_world = _views(cameras)
     detector = models.scene_detector(objects, **detector_options)
     renderer = models.pose_renderer(objects) if with_masks else None
     return find_instances(detector, images, Ks, T_cam_world, with_masks=with_masks,

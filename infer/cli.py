@@ -16,22 +16,64 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from infer.api import DEFAULT_CACHE, Camera, load, run_scene
+from infer.api import DEFAULT_CACHE, Camera, load, prepare_views, run_scene
+from threept_jax.geometry.validate import validate_intrinsics, validate_rigid
+
+
+def _int_at_least(low: int):
+    """An argparse ``type``: an integer >= ``low`` (argparse prints ``error: argument --flag:
+    ...`` and exits 2 otherwise)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be >= {low}, got {value}")
+        return value
+
+    return parse
+
+
+def _fraction(text: str) -> float:
+    """An argparse ``type``: a number in [0, 1]."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number in [0, 1], got {text!r}") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {text}")
+    return value
+
+
+def _step(text: str) -> str | int:
+    """An argparse ``type``: ``best``, ``latest`` or a checkpoint step >= 0."""
+    if text in ("best", "latest"):
+        return text
+    try:
+        return _int_at_least(0)(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"must be best, latest or a step number >= 0, got {text!r}") from None
 
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workdir", required=True, help="a detector training run (train/launch.py --workdir)")
-    p.add_argument("--step", default="best", help="checkpoint: best, latest or a step number")
+    p.add_argument("--step", type=_step, default="best",
+                   help="checkpoint: best, latest or a step number")
     p.add_argument("--num-templates", type=int, default=5140,
                    help="templates per object (the paper's 5140; fewer onboard faster)")
-    p.add_argument("--num-scales", type=int, default=3,
+    p.add_argument("--num-scales", type=_int_at_least(1), default=3,
                    help="pan-and-scan scales (3 for an unknown depth range)")
-    p.add_argument("--score-threshold", type=float, default=0.1)
-    p.add_argument("--max-detections", type=int, default=100, help="per image")
+    p.add_argument("--score-threshold", type=_fraction, default=0.1,
+                   help="keep detections scoring above this, in [0, 1]")
+    p.add_argument("--max-detections", type=_int_at_least(1), default=100, help="per image")
     p.add_argument("--cache-dir", type=pathlib.Path, default=DEFAULT_CACHE,
                    help="onboarding and compilation cache (env THREEPT_CACHE)")
     p.add_argument("--out", type=pathlib.Path, required=True, help="output folder")
-    p.add_argument("--overlays", type=int, default=10, help="overlay PNGs written (0: none)")
+    p.add_argument("--overlays", type=_int_at_least(0), default=10,
+                   help="overlay PNGs written (0: none)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -45,9 +87,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--split", default="test")
     b.add_argument("--targets", default="bop24", choices=("bop24", "bop19", "all"),
                    help="which images: a test_targets file, or every image of the split")
-    b.add_argument("--obj-ids", type=int, nargs="*", help="query only these objects (default all)")
-    b.add_argument("--scene-ids", type=int, nargs="*", help="only these scenes")
-    b.add_argument("--max-images", type=int, default=None)
+    b.add_argument("--obj-ids", type=_int_at_least(0), nargs="*",
+                   help="query only these objects (default: the targets' objects, or all)")
+    b.add_argument("--scene-ids", type=_int_at_least(0), nargs="*", help="only these scenes")
+    b.add_argument("--max-images", type=_int_at_least(1), default=None)
     b.add_argument("--models-subdir", default="models", help="meshes to onboard")
     b.add_argument("--method", default="threept", help="method name in the result file names")
     b.add_argument("--evaluate", action="store_true", help="also run the BOP evaluator")
@@ -62,7 +105,12 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--K", action="append", metavar="fx,fy,cx,cy",
                    help="intrinsics in pixels, one per image (or use --cameras)")
     i.add_argument("--cameras", type=pathlib.Path,
-                   help='JSON list, one per image: {"K": 3x3, "T_cam_world": 4x4 (mm, multi-view)}')
+                   help='JSON list, one per image: {"K": 3x3, "T_cam_world": 4x4 (mm, multi-view), '
+                        '"calibration_size": [W, H] (optional)}')
+    i.add_argument("--calibration-size", type=_int_at_least(1), nargs=2, metavar=("W", "H"),
+                   help="image size the intrinsics were calibrated at, when the images are "
+                        "resized: K is rescaled to each image (pixel centres at integers: "
+                        "cx' = (cx + 0.5) * sx - 0.5)")
     return parser
 
 
@@ -89,39 +137,66 @@ def _read_rgb(path) -> np.ndarray:
 
 
 def _cameras(args, n: int) -> list[Camera]:
-    """One Camera per image, from --cameras FILE or --K (single view)."""
+    """One Camera per image, from --cameras FILE or --K (single view); ValueError names a bad
+    entry."""
+    default_hw = None if args.calibration_size is None else tuple(args.calibration_size[::-1])
     if args.cameras is not None:
-        cams = json.loads(args.cameras.read_text())
+        path = args.cameras
+        try:
+            cams = json.loads(path.read_text())
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{path} is not valid JSON: {e}") from None
+        if not isinstance(cams, list):
+            raise ValueError(f"{path} must hold a JSON list of cameras, one per image")
         if len(cams) != n:
-            raise SystemExit(f"error: {args.cameras} has {len(cams)} cameras for {n} images")
+            raise ValueError(f"{path} has {len(cams)} cameras for {n} images (--image)")
+        out = []
         for i, c in enumerate(cams):
+            where = f"{path} camera {i}"
             if not isinstance(c, dict) or "K" not in c:
-                raise SystemExit(f"error: {args.cameras} camera {i} has no \"K\" (3x3 in pixels)")
-        return [Camera(c["K"], T_cam_world=c.get("T_cam_world")) for c in cams]
+                raise ValueError(f'{where} has no "K" (3x3 in pixels)')
+            K = validate_intrinsics(c["K"], f"{where} K")
+            T = c.get("T_cam_world")
+            if T is not None:
+                T = validate_rigid(T, f"{where} T_cam_world (world -> camera, mm)")
+            hw = default_hw
+            if c.get("calibration_size") is not None:
+                size = np.ravel(c["calibration_size"])
+                if size.size != 2 or not all(float(v).is_integer() and v > 0 for v in size):
+                    raise ValueError(f'{where} "calibration_size" must be [W, H] in pixels, got '
+                                     f"{c['calibration_size']}")
+                hw = (int(size[1]), int(size[0]))
+            out.append(Camera(K, T_cam_world=T, calibration_hw=hw))
+        return out
     if not args.K or len(args.K) != n:
-        raise SystemExit(f"error: give one --K fx,fy,cx,cy per image ({n}) or --cameras FILE")
+        raise ValueError(f"{len(args.K or ())} --K for {n} --image: give one --K fx,fy,cx,cy "
+                         "per image or --cameras FILE")
     cameras = []
     for k in args.K:
         try:
             fx, fy, cx, cy = (float(v) for v in k.split(","))
         except ValueError:
-            raise SystemExit(f"error: --K {k!r} must be four numbers fx,fy,cx,cy (pixels)") from None
-        cameras.append(Camera(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])))
+            raise ValueError(f"--K {k!r} must be four numbers fx,fy,cx,cy (pixels)") from None
+        K = validate_intrinsics([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], f"--K {k}")
+        cameras.append(Camera(K, calibration_hw=default_hw))
     return cameras
 
 
 def run_images(args) -> list:
     from infer.detect import Detection
-    from infer.visualize import draw_detections
+    from infer.visualize import draw_detections, empty_caption
 
     meshes = {}
     for item in args.mesh:
         key, _, path = item.partition("=")
         if not key.isdigit() or not path:
-            raise SystemExit(f"error: --mesh {item!r} must be ID=PATH with an integer id")
+            raise ValueError(f"--mesh {item!r} must be ID=PATH with an integer id")
+        if not pathlib.Path(path).is_file():
+            raise FileNotFoundError(f"--mesh {item}: no mesh file {path}")
         meshes[int(key)] = path
+    cameras = _cameras(args, len(args.image))
     images = [_read_rgb(p) for p in args.image]
-    cameras = _cameras(args, len(images))
+    prepare_views(images, cameras)  # K against each image's size, before the slow work
     models = load_models(args)
     objects = models.onboard(meshes, units=args.units)
     start = time.perf_counter()
@@ -133,21 +208,32 @@ def run_images(args) -> list:
              "hypotheses": x.hypotheses.tolist(), "hypothesis_scores": x.hypothesis_scores.tolist()}
             for x in instances]
     (args.out / "instances.json").write_text(json.dumps({"time_s": elapsed, "instances": rows}, indent=1))
+    caption = None
+    if not instances:
+        caption = empty_caption(args.score_threshold, instances.best_score)
+        if instances.best_score > args.score_threshold:
+            caption = (f"0 instances: no detection above threshold {args.score_threshold:g} "
+                       "was matched across enough views")
     for v, (img, path) in enumerate(zip(images, args.image)):
         if v >= args.overlays:
             break
         T_cw = np.eye(4) if cameras[v].T_cam_world is None else cameras[v].T_cam_world
         drawn = [Detection(x.obj_id, x.boxes.get(v, np.zeros(4)), x.score, (T_cw @ x.T_world_obj)[None],
                            x.hypothesis_scores[:1], np.zeros(0)) for x in instances]
-        canvas = draw_detections(img, drawn, [x.masks[v] for x in instances])
+        canvas = draw_detections(img, drawn, [x.masks[v] for x in instances], caption=caption)
         cv2.imwrite(str(args.out / f"overlay_{v}_{pathlib.Path(path).stem}.png"),
                     cv2.cvtColor(canvas, cv2.COLOR_RGB2BGR))
+    if caption:
+        print(caption)
     print(f"{len(instances)} instances in {elapsed:.2f} s -> {args.out / 'instances.json'}")
     return instances
 
 
 def main(argv: Sequence[str] | None = None):
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.num_templates < 1:
+        parser.error(f"argument --num-templates: must be >= 1, got {args.num_templates}")
     try:
         if args.command == "bop":
             from infer.bop_runner import run_bop
@@ -157,4 +243,3 @@ def main(argv: Sequence[str] | None = None):
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(2) from e
-

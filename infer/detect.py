@@ -54,6 +54,17 @@ class Detection:
         return self.poses[0]
 
 
+class Detections(list):
+    """The detections of one image (a list of :class:`Detection`, best first) and
+    ``best_score``: the highest score of any candidate, kept or not (-inf when no candidate
+    survived the tile-edge filter), so an empty list can say how far below the threshold the
+    image stayed."""
+
+    def __init__(self, detections=(), best_score: float = -np.inf):
+        super().__init__(detections)
+        self.best_score = float(best_score)
+
+
 class SceneDetector:
     """Detects onboarded objects in images (module docstring)."""
 
@@ -127,13 +138,15 @@ class SceneDetector:
                 lambda b, s, p: single_view_hypotheses(b, K, s, rotations, p, k, min_angle))(
                     det_boxes, tmpl, points_all[obj])
             return {"boxes": det_boxes, "scores": scores.reshape(-1)[keep], "valid": ok,
+                    "best_score": jnp.max(scores),
                     "object": obj, "poses": poses, "pose_scores": pose_scores,
                     "template_scores": tmpl}
 
         return jax.jit(run)
 
-    def detect(self, image: np.ndarray, K: np.ndarray) -> list[Detection]:
-        """Detections in one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3], best first."""
+    def detect(self, image: np.ndarray, K: np.ndarray) -> Detections:
+        """Detections in one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3] (pixels of
+        this image), best first, with the best candidate score (:class:`Detections`)."""
         image = np.asarray(image)
         if image.ndim != 3 or image.shape[2] != 3:
             raise ValueError(f"image must be RGB [H, W, 3], got shape {image.shape}")
@@ -145,7 +158,7 @@ class SceneDetector:
         out = self._compiled(hw)(self._params, image, K, self._prior, self._bank, self._points,
                                  self._rotations)
         out = jax.tree.map(np.asarray, out)
-        dets = []
+        dets = Detections(best_score=out["best_score"])
         for i in np.flatnonzero(out["valid"]):
             o = self.objects[int(out["object"][i])]
             dets.append(Detection(o.obj_id, out["boxes"][i], float(out["scores"][i]),

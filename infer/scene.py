@@ -60,6 +60,16 @@ class Instance:
     masks: dict
 
 
+class Instances(list):
+    """The instances of a scene (a list of :class:`Instance`, best first) and ``best_score``:
+    the highest detection-candidate score in any view, kept or not (-inf when none), so an
+    empty list can say whether the threshold or the cross-view matching left it empty."""
+
+    def __init__(self, instances=(), best_score: float = -np.inf):
+        super().__init__(instances)
+        self.best_score = float(best_score)
+
+
 def _check_views(images, Ks, T_cam_world):
     V = len(images)
     if V == 0:
@@ -130,7 +140,7 @@ def fuse_views(detections: Sequence[Sequence[Detection]], Ks: np.ndarray, T_cam_
 def find_instances(detector: SceneDetector, images: Sequence[np.ndarray],
                    Ks: Sequence[np.ndarray], T_cam_world: np.ndarray | None = None, *,
                    with_masks: bool = True, min_views: int = 3,
-                   renderer: PoseRenderer | None = None) -> list[Instance]:
+                   renderer: PoseRenderer | None = None) -> Instances:
     """Instances in a scene seen by one or several calibrated RGB views.
 
     Args:
@@ -141,6 +151,8 @@ def find_instances(detector: SceneDetector, images: Sequence[np.ndarray],
       with_masks: render each instance's silhouette in every view.
       min_views: multi-view instances must be seen in at least this many views (3PT: 3;
         capped at V).
+
+    Returns :class:`Instances`, best first.
     """
     T_cam_world = _check_views(images, Ks, T_cam_world)
     Ks = np.stack([np.asarray(k, np.float32) for k in Ks])
@@ -158,6 +170,7 @@ def find_instances(detector: SceneDetector, images: Sequence[np.ndarray],
                                logit_scale=detector.logit_scale,
                                num_hypotheses=detector.num_hypotheses,
                                min_angle_deg=detector.min_angle_deg)
+    instances = Instances(instances, max(d.best_score for d in detections))
     if with_masks and instances:
         renderer = renderer or PoseRenderer(detector.objects)
         for v, (img, K) in enumerate(zip(images, Ks)):

@@ -1,4 +1,6 @@
-"""Overlays: detections drawn on their image (box, label, silhouette contour of the pose)."""
+"""Overlays: detections drawn on their image (box, label, silhouette contour of the pose), and a
+caption (such as :func:`empty_caption`) so an image without detections does not look like an
+untouched input."""
 
 from __future__ import annotations
 
@@ -16,12 +18,31 @@ def _colour(obj_id: int) -> tuple[int, int, int]:
     return tuple(int(c) for c in bgr[::-1])  # RGB
 
 
+def empty_caption(threshold: float, best_score: float) -> str:
+    """What to say for an image without detections, e.g. ``0 detections above threshold 0.1
+    (best score 0.034)``; ``best_score`` is -inf when there was no candidate at all."""
+    best = f"best score {best_score:.3f}" if np.isfinite(best_score) else "no candidates"
+    return f"0 detections above threshold {threshold:g} ({best})"
+
+
+def caption_band_height(image_hw: tuple[int, int]) -> int:
+    """Height in pixels of the band at the top of an overlay that a caption is drawn in."""
+    return 18 * max(1, round(max(image_hw) / 640))
+
+
 def draw_detections(image: np.ndarray, detections: Sequence[Detection],
                     masks: Sequence[np.ndarray] | None = None,
-                    names: Mapping[int, str] | None = None, max_draw: int = 50) -> np.ndarray:
-    """uint8 RGB copy of ``image`` with boxes, ``name score`` labels and mask contours."""
+                    names: Mapping[int, str] | None = None, max_draw: int = 50,
+                    caption: str | None = None) -> np.ndarray:
+    """uint8 RGB copy of ``image`` with boxes, ``name score`` labels and mask contours, and
+    ``caption`` (if given) in white on a black band at the top (:func:`caption_band_height`)."""
     canvas = np.ascontiguousarray(np.asarray(image, np.uint8).copy())
     scale = max(1, round(max(canvas.shape[:2]) / 640))
+    if caption:
+        band = caption_band_height(canvas.shape[:2])
+        canvas[:band] = 0
+        cv2.putText(canvas, caption, (4 * scale, band - 5 * scale), cv2.FONT_HERSHEY_SIMPLEX,
+                    0.4 * scale, (255, 255, 255), scale, cv2.LINE_AA)
     for i, det in enumerate(detections[:max_draw]):
         colour = _colour(det.obj_id)
         if masks is not None:

@@ -1,11 +1,16 @@
-"""The inference CLI's camera arguments: parsed into Cameras, bad ones named."""
+"""The inference CLI's arguments: parsed into Cameras, bad ones named (``error: ...``, exit 2)
+before any model is loaded; an image without detections says so on the console and overlay."""
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
-from infer.cli import _cameras, build_parser
+from infer import cli
+from infer.cli import _cameras, build_parser, main
+from infer.scene import Instances
+from infer.visualize import caption_band_height
 
 
 def _args(tmp_path, *extra):
@@ -14,10 +19,34 @@ def _args(tmp_path, *extra):
                                       "--image", "a.png", *extra])
 
 
+@pytest.fixture
+def files(tmp_path):
+    """A mesh file and two 64x48 images; load_models fails loudly if it is ever reached."""
+    (tmp_path / "a.ply").write_text("ply\n")
+    rng = np.random.default_rng(0)
+    for name in ("a.png", "b.png"):
+        cv2.imwrite(str(tmp_path / name), rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+    return tmp_path
+
+
+def _images_argv(tmp_path, *extra):
+    return ["images", "--workdir", str(tmp_path / "no_run"), "--out", str(tmp_path / "out"),
+            "--mesh", f"1={tmp_path / 'a.ply'}", "--image", str(tmp_path / "a.png"), *extra]
+
+
+def _fails(capsys, argv, match):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2, err
+    assert match in err, err
+    return err
+
+
 def test_k_flags_and_camera_files_become_cameras(tmp_path):
     (cam,) = _cameras(_args(tmp_path, "--K", "600,610,319.5,239.5"), 1)
     np.testing.assert_array_equal(cam.K, [[600, 0, 319.5], [0, 610, 239.5], [0, 0, 1]])
-    assert cam.T_cam_world is None
+    assert cam.T_cam_world is None and cam.calibration_hw is None
     T = np.eye(4)
     T[:3, 3] = [10.0, -5.0, 700.0]
     path = tmp_path / "cams.json"
@@ -26,12 +55,111 @@ def test_k_flags_and_camera_files_become_cameras(tmp_path):
     np.testing.assert_array_equal(rig.T_cam_world, T)
 
 
+def test_calibration_size_reaches_the_cameras_as_height_width(tmp_path):
+    (cam,) = _cameras(_args(tmp_path, "--K", "1000,1000,639.5,479.5", "--calibration-size",
+                            "1280", "960"), 1)
+    assert cam.calibration_hw == (960, 1280)
+    path = tmp_path / "cams.json"
+    path.write_text(json.dumps([{"K": cam.K.tolist(), "calibration_size": [1920, 1080]}]))
+    (own,) = _cameras(_args(tmp_path, "--cameras", str(path), "--calibration-size", "1280",
+                            "960"), 1)
+    assert own.calibration_hw == (1080, 1920)  # a camera's own entry wins
+
+
+def test_run_scene_rescales_k_from_the_calibration_size():
+    from infer.api import Camera, prepare_views
+
+    image = np.zeros((480, 640, 3), np.uint8)
+    cam = Camera(np.array([[1000.0, 0, 651.0], [0, 1000.0, 489.0], [0, 0, 1]]),
+                 calibration_hw=(960, 1280))
+    (K,), T = prepare_views([image], [cam])
+    # Hand-derived: fx * 0.5, (c + 0.5) * 0.5 - 0.5.
+    np.testing.assert_allclose(K, [[500, 0, 325.25], [0, 500, 244.25], [0, 0, 1]], atol=1e-12)
+    assert T is None
+    with pytest.raises(ValueError, match="camera 0 K.*outside the 640x480 image"):
+        prepare_views([image], [Camera(cam.K)])
+
+
 def test_bad_camera_arguments_name_the_problem(tmp_path):
     path = tmp_path / "cams.json"
     path.write_text(json.dumps([{"T_cam_world": np.eye(4).tolist()}]))
-    with pytest.raises(SystemExit, match='camera 0 has no "K"'):
+    with pytest.raises(ValueError, match='camera 0 has no "K"'):
         _cameras(_args(tmp_path, "--cameras", str(path)), 1)
-    with pytest.raises(SystemExit, match="four numbers"):
+    with pytest.raises(ValueError, match="four numbers"):
         _cameras(_args(tmp_path, "--K", "600,610,319.5"), 1)
-    with pytest.raises(SystemExit, match="one --K"):
+    with pytest.raises(ValueError, match="one --K"):
         _cameras(_args(tmp_path), 1)
+    path.write_text("[{")
+    with pytest.raises(ValueError, match="cams.json is not valid JSON"):
+        _cameras(_args(tmp_path, "--cameras", str(path)), 1)
+
+
+def test_camera_with_a_bad_bottom_row_is_labelled_t_cam_world(tmp_path):
+    from infer.api import Camera
+
+    T = np.eye(4)
+    T[3] = [0, 0, 1, 1]
+    with pytest.raises(ValueError, match="T_cam_world") as e:
+        Camera(np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]]), T_cam_world=T)
+    assert "T_cam_obj" not in str(e.value)
+
+
+@pytest.mark.parametrize("flag, value, match", [
+    ("--num-scales", "0", "argument --num-scales: must be >= 1"),
+    ("--score-threshold", "1.5", "argument --score-threshold: must be in [0, 1]"),
+    ("--score-threshold", "nan", "argument --score-threshold: must be in [0, 1]"),
+    ("--max-detections", "0", "argument --max-detections: must be >= 1"),
+    ("--overlays", "-1", "argument --overlays: must be >= 0"),
+    ("--step", "newest", "argument --step: must be best, latest or a step number"),
+    ("--num-templates", "0", "argument --num-templates: must be >= 1"),
+    ("--calibration-size", "0", "argument --calibration-size: must be >= 1"),
+])
+def test_bad_numeric_options_exit_2_naming_the_flag(files, capsys, flag, value, match):
+    extra = [flag, value] + (["480"] if flag == "--calibration-size" else [])
+    _fails(capsys, _images_argv(files, "--K", "60,60,31.5,23.5", *extra), match)
+
+
+def test_bad_bop_options_exit_2_naming_the_flag(tmp_path, capsys):
+    base = ["bop", "--workdir", str(tmp_path), "--out", str(tmp_path / "o"), "--dataset-dir",
+            str(tmp_path)]
+    _fails(capsys, base + ["--max-images", "0"], "argument --max-images: must be >= 1")
+    _fails(capsys, base + ["--obj-ids", "-2"], "argument --obj-ids: must be >= 0")
+
+
+def test_input_errors_exit_2_before_loading_models(files, capsys, monkeypatch):
+    def no_load(args):
+        raise AssertionError("models loaded before the inputs were checked")
+
+    monkeypatch.setattr(cli, "load_models", no_load)
+    argv = _images_argv(files, "--image", str(files / "b.png"), "--K", "60,60,31.5,23.5")
+    _fails(capsys, argv, "error: 1 --K for 2 --image")
+    cams = files / "cams.json"
+    cams.write_text(json.dumps([{"T_cam_world": np.eye(4).tolist()}]))
+    _fails(capsys, _images_argv(files, "--cameras", str(cams)), 'camera 0 has no "K"')
+    T = np.eye(4)
+    T[3] = [0, 0, 0, 2]
+    K = [[60, 0, 31.5], [0, 60, 23.5], [0, 0, 1]]
+    cams.write_text(json.dumps([{"K": K, "T_cam_world": T.tolist()}]))
+    err = _fails(capsys, _images_argv(files, "--cameras", str(cams)),
+                 "cams.json camera 0 T_cam_world")
+    assert "T_cam_obj" not in err
+    _fails(capsys, _images_argv(files, "--K", "60,60,31.5,23.5", "--mesh", "2=nowhere.ply"),
+           "no mesh file nowhere.ply")
+    # K of a 4x larger image: its principal point lies outside this one.
+    _fails(capsys, _images_argv(files, "--K", "240,240,127.5,95.5"), "outside the 64x48 image")
+
+
+def test_no_detections_are_reported_on_console_and_overlay(files, capsys, monkeypatch):
+    class FakeModels:
+        def onboard(self, meshes, units):
+            return []
+
+    monkeypatch.setattr(cli, "load_models", lambda args: FakeModels())
+    monkeypatch.setattr(cli, "run_scene", lambda *a, **k: Instances([], best_score=0.0342))
+    main(_images_argv(files, "--K", "60,60,31.5,23.5", "--score-threshold", "0.2"))
+    assert "0 detections above threshold 0.2 (best score 0.034)" in capsys.readouterr().out
+    image = cv2.imread(str(files / "a.png"))
+    overlay = cv2.imread(str(files / "out" / "overlay_0_a.png"))
+    band = caption_band_height(image.shape[:2])
+    assert np.any(overlay[:band] != image[:band])  # the caption
+    np.testing.assert_array_equal(overlay[band:], image[band:])

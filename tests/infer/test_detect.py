@@ -130,3 +130,20 @@ def test_public_api_runs_the_stages_and_reuses_compiled_detectors(pipeline):
     rig = [infer.Camera(K, T_cam_world=np.eye(4)), infer.Camera(K)]
     with pytest.raises(ValueError, match="every camera carries T_cam_world"):
         infer.run_scene([image, image], rig, objects, models, **options)
+
+
+def test_empty_results_carry_the_best_score_below_the_threshold(pipeline):
+    model, cfg, objects, _, _ = pipeline
+    image = np.random.default_rng(1).integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    K = np.array([[80.0, 0, 31.5], [0, 80.0, 31.5], [0, 0, 1]])
+    options = dict(num_scales=1, max_detections=3)
+    kept = SceneDetector(model, cfg, objects, score_threshold=0.0, **options).detect(image, K)
+    strict = SceneDetector(model, cfg, objects, score_threshold=1.0, **options)
+    dets = strict.detect(image, K)
+    # Greedy NMS keeps the highest candidate first, so with no threshold the top detection's
+    # score is the best candidate score; a threshold of 1 keeps nothing but still reports it.
+    assert len(dets) == 0 and 0.0 < dets.best_score < 1.0
+    assert dets.best_score == pytest.approx(kept[0].score, abs=1e-6)
+    assert kept.best_score == pytest.approx(kept[0].score, abs=1e-6)
+    found = find_instances(strict, [image], [K])
+    assert len(found) == 0 and found.best_score == pytest.approx(kept[0].score, abs=1e-6)

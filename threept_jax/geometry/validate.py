@@ -8,9 +8,11 @@ return float64 copies; JAX code calls them on concrete values before tracing.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
-__all__ = ["validate_intrinsics", "validate_rotation", "validate_rigid"]
+__all__ = ["scale_intrinsics", "validate_intrinsics", "validate_rotation", "validate_rigid"]
 
 
 def _matrices(x, shape: tuple[int, int], where: str, what: str) -> np.ndarray:
@@ -27,14 +29,48 @@ def _matrices(x, shape: tuple[int, int], where: str, what: str) -> np.ndarray:
     return x
 
 
-def validate_intrinsics(K, where: str = "K", image_hw: tuple[int, int] | None = None
-                        ) -> np.ndarray:
+def scale_intrinsics(K, calibration_hw: tuple[int, int], image_hw: tuple[int, int]
+                     ) -> np.ndarray:
+    """K [..., 3, 3] calibrated on images of size ``calibration_hw`` (H, W) -> K of the same
+    camera on images resized to ``image_hw`` (H, W), float64.
+
+    Pixel centres sit at integer coordinates (BOP, OpenCV), so the image spans
+    [-0.5, W - 0.5] and a resize by sx = W' / W maps u to (u + 0.5) * sx - 0.5:
+    fx' = fx * sx, s' = s * sx, cx' = (cx + 0.5) * sx - 0.5, and likewise fy, cy with
+    sy = H' / H.
+    """
+    K = np.array(K, dtype=np.float64)
+    (ch, cw), (h, w) = calibration_hw, image_hw
+    sx, sy = w / cw, h / ch
+    K[..., 0, :] = K[..., 0, :] * sx
+    K[..., 1, :] = K[..., 1, :] * sy
+    K[..., 0, 2] += 0.5 * sx - 0.5
+    K[..., 1, 2] += 0.5 * sy - 0.5
+    return K
+
+
+def _size(hw, where: str, what: str) -> tuple[int, int]:
+    hw = tuple(np.ravel(hw).tolist())
+    if len(hw) != 2 or not all(float(v).is_integer() and v > 0 for v in hw):
+        raise ValueError(f"{where}: {what} must be two positive integers (height, width), "
+                         f"got {hw}")
+    return int(hw[0]), int(hw[1])
+
+
+def validate_intrinsics(K, where: str = "K", image_hw: tuple[int, int] | None = None,
+                        calibration_hw: tuple[int, int] | None = None) -> np.ndarray:
     """Check and return pinhole intrinsics K [..., 3, 3] as float64.
 
     K must be upper triangular, row-major ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``, with
     fx, fy > 0. With ``image_hw`` (H, W) the values are also checked against the image: focal
-    lengths in pixels (not normalised by the image size) and a principal point near the image
-    (a K for another image size is the classic silent error).
+    lengths in pixels (not normalised by the image size) and a principal point inside the image
+    (a K for another image size is the classic silent error): outside [-0.5, W - 0.5] x
+    [-0.5, H - 0.5] it is refused, outside the central 20-80% of the size it is warned about.
+
+    ``calibration_hw`` (H, W): the image size K was calibrated at. When it differs from
+    ``image_hw``, the returned K is rescaled to the image (:func:`scale_intrinsics`) before
+    the checks; a resize that changes the aspect ratio by more than 1% is warned about (a crop
+    also moves the principal point, which no rescaling can know).
     """
     K = _matrices(K, (3, 3), where, "K")
     if np.abs(K[..., 1, 0]).max(initial=0) > 1e-9 or np.abs(K[..., 2, :2]).max(initial=0) > 1e-9:
@@ -49,6 +85,17 @@ def validate_intrinsics(K, where: str = "K", image_hw: tuple[int, int] | None = 
             f"{where}: focal lengths must be positive (fx > 0, fy > 0), got "
             f"fx={K[..., 0, 0].tolist()}, "
             f"fy={K[..., 1, 1].tolist()} (an image flip belongs in the pose, not in K)")
+    if calibration_hw is not None:
+        if image_hw is None:
+            raise ValueError(f"{where}: a calibration size needs the image size to rescale K to")
+        (ch, cw), (h, w) = _size(calibration_hw, where, "calibration size"), image_hw
+        if abs((w / cw) / (h / ch) - 1) > 0.01:
+            warnings.warn(
+                f"{where}: the image ({w}x{h}) and the calibration size ({cw}x{ch}) have "
+                "different aspect ratios; K is rescaled per axis, which is right for a resize "
+                "but wrong for a crop (a crop shifts cx, cy: subtract the crop's corner instead)",
+                stacklevel=2)
+        K = scale_intrinsics(K, (ch, cw), (h, w))
     if image_hw is not None:
         h, w = image_hw
         if np.minimum(K[..., 0, 0], K[..., 1, 1]).min() < 0.05 * max(h, w):
@@ -56,12 +103,17 @@ def validate_intrinsics(K, where: str = "K", image_hw: tuple[int, int] | None = 
                 f"{where}: focal lengths ({K[..., 0, 0].tolist()}, {K[..., 1, 1].tolist()}) px "
                 f"are implausibly small for a {w}x{h} image: K must be in pixels, not "
                 "normalised by the image size")
-        cx, cy = K[..., 0, 2], K[..., 1, 2]
-        if not (np.all((-0.5 * w <= cx) & (cx <= 1.5 * w))
-                and np.all((-0.5 * h <= cy) & (cy <= 1.5 * h))):
-            raise ValueError(
-                f"{where}: principal point ({cx.tolist()}, {cy.tolist()}) is far outside the "
-                f"{w}x{h} image: is K for this image size (after any resizing or cropping)?")
+        # Principal point as a fraction of the image extent [-0.5, size - 0.5].
+        u, v = (K[..., 0, 2] + 0.5) / w, (K[..., 1, 2] + 0.5) / h
+        point = f"principal point ({K[..., 0, 2].tolist()}, {K[..., 1, 2].tolist()})"
+        fix = ("is K for this image size? If K was calibrated at another resolution, give "
+               "that size (Camera calibration_hw, --calibration-size W H, or "
+               '"calibration_size": [W, H] in a cameras JSON) and K is rescaled')
+        if np.any((u < 0) | (u > 1) | (v < 0) | (v > 1)):
+            raise ValueError(f"{where}: {point} is outside the {w}x{h} image: {fix}")
+        if np.any((u < 0.2) | (u > 0.8) | (v < 0.2) | (v > 0.8)):
+            warnings.warn(f"{where}: {point} is outside the central 20-80% of the {w}x{h} "
+                          f"image: {fix}", stacklevel=2)
     return K
 
 

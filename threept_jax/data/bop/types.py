@@ -9,7 +9,7 @@ import numpy as np
 
 from threept_jax.data.ply import load_ply_vertices
 from threept_jax.geometry.symmetry import Symmetries
-from threept_jax.geometry.validate import validate_intrinsics
+from threept_jax.geometry.validate import validate_intrinsics, validate_rigid
 
 POSE_CSV_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
@@ -33,16 +33,26 @@ def _readonly(a: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True, eq=False)
 class Camera:
     """Per-image camera: K [3, 3] (pixels), depth_scale (depth png * scale = mm), optional
-    T_cam_world [4, 4] (mm) from ``cam_R_w2c``/``cam_t_w2c``."""
+    T_cam_world [4, 4] (world -> camera, mm) from ``cam_R_w2c``/``cam_t_w2c``, and optional
+    calibration_hw (H, W): the image size K was calibrated at, when the images are a resized
+    version of it (inference rescales K to each image; BOP files have no such field)."""
 
     K: np.ndarray
     depth_scale: float | None = None
     T_cam_world: np.ndarray | None = None
+    calibration_hw: tuple[int, int] | None = None
 
     def __post_init__(self):
-        object.__setattr__(self, "K", _readonly(validate_intrinsics(self.K)))
+        object.__setattr__(self, "K", _readonly(validate_intrinsics(self.K, "Camera K")))
         if self.T_cam_world is not None:
-            object.__setattr__(self, "T_cam_world", _readonly(self.T_cam_world))
+            T = validate_rigid(self.T_cam_world, "Camera T_cam_world (world -> camera, mm)")
+            object.__setattr__(self, "T_cam_world", _readonly(T))
+        if self.calibration_hw is not None:
+            hw = tuple(np.ravel(self.calibration_hw).tolist())
+            if len(hw) != 2 or not all(float(v).is_integer() and v > 0 for v in hw):
+                raise ValueError(f"Camera calibration_hw must be two positive integers "
+                                 f"(height, width), got {self.calibration_hw}")
+            object.__setattr__(self, "calibration_hw", (int(hw[0]), int(hw[1])))
 
     def to_json(self) -> dict:
         out = {"cam_K": self.K.reshape(-1).tolist()}
@@ -132,9 +142,10 @@ class ObjectModel:
     def vertices(self) -> np.ndarray:
         """All mesh vertices [N, 3] float64 in mm (read from the PLY on every call)."""
         if self.path is None or not self.path.is_file():
+            name = f"obj_{self.obj_id:06d}.ply" if self.path is None else self.path
             raise FileNotFoundError(
-                f"object {self.obj_id}: mesh file {self.path} is missing; models_info.json lists "
-                "the object but the models folder has no obj_{obj_id:06d}.ply for it"
+                f"object {self.obj_id}: mesh file {name} is missing; models_info.json lists "
+                "the object but its models folder has no mesh for it"
             )
         return load_ply_vertices(self.path)
 
