@@ -364,3 +364,48 @@ def test_inconsistent_times_are_rejected():
     bop.check_consistent_times(ests)
     with pytest.raises(ValueError, match="scene 1 and image 1 is not the same"):
         bop.check_consistent_times(ests + [bop.PoseEstimate(1, 1, 3, 1, R, [0, 0, 1], 0.2)])
+
+
+def _write_gt(sc_dir, rotations):
+    sc_dir.mkdir(parents=True, exist_ok=True)
+    gt = {"0": [{"obj_id": 1, "cam_R_m2c": np.asarray(R).reshape(-1).tolist(),
+                 "cam_t_m2c": [0.0, 0.0, 500.0]} for R in rotations]}
+    (sc_dir / "scene_gt.json").write_text(json.dumps(gt))
+    return gt
+
+
+def test_rounded_gt_rotations_are_accepted_as_stored_and_projected(tmp_path):
+    # Official BOP GT (LM-O) stores rounded rotations, |R R^T - I| ~ 1e-2: the toolkit evaluates
+    # them as stored, so gt_as_stored keeps the file's values; gt gives the nearest rotation.
+    R = np.round(Rotation.random(3, random_state=11).as_matrix(), 2)
+    R[0] = Rotation.random(random_state=12).as_matrix()  # an exact one is kept as it is
+    dev = [np.abs(r @ r.T - np.eye(3)).max() for r in R]
+    assert dev[0] < 1e-12 and 3e-3 < max(dev) < 0.1
+    gt = _write_gt(tmp_path / "000001", R)
+    scene = bop.BopScene(tmp_path / "000001")
+    with pytest.warns(UserWarning, match=rf"scene_gt.json: 2 ground-truth rotations .*worst "
+                                         rf"\|R R\^T - I\| = {max(dev):.2e}"):
+        stored = scene.gt_as_stored[0]
+    for g, e in zip(stored, gt["0"]):
+        np.testing.assert_array_equal(g.R.reshape(-1), e["cam_R_m2c"])
+    projected = scene.gt[0]
+    for g, r in zip(projected, R):
+        U, _, Vt = np.linalg.svd(r)  # nearest rotation (Frobenius), float64 NumPy
+        ref = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        np.testing.assert_allclose(g.R, ref, atol=1e-12)
+        np.testing.assert_array_equal(g.t, [0.0, 0.0, 500.0])
+    np.testing.assert_array_equal(projected[0].R, R[0])
+
+
+@pytest.mark.parametrize(
+    "R, msg",
+    [
+        (np.diag([1.0, 1.0, -1.0]), "not orthonormal"),  # a reflection
+        (1.2 * np.eye(3), "not orthonormal"),  # deviation 0.44 > 0.1
+        (np.array([[np.nan, 0, 0], [0, 1, 0], [0, 0, 1]]), "non-finite"),
+    ],
+)
+def test_gt_that_is_not_a_rotation_is_refused(tmp_path, R, msg):
+    _write_gt(tmp_path / "000001", [R])
+    with pytest.raises(ValueError, match=f"scene_gt.json image 0 gt 0 cam_R_m2c.*{msg}"):
+        _ = bop.BopScene(tmp_path / "000001").gt_as_stored

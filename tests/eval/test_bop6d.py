@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from threept_jax.data import bop
 from threept_jax.data.ply import load_ply_vertices
 from threept_jax.eval.bop6d import ImageGt, average_precision_101, evaluate_poses
-from threept_jax.eval.bop_eval import evaluate_pose_results
+from threept_jax.eval.bop_eval import evaluate_pose_results, load_image_gts
 from threept_jax.eval.pose_error import prepare_model
 from threept_jax.geometry.symmetry import Symmetries
 from threept_jax.testing.bop_synthetic import SyntheticInstance, write_synthetic_dataset
@@ -458,3 +458,47 @@ def test_matches_toolkit_reference_on_generated_dataset(tmp_path, itodd, tless):
     assert got.ar_mssd == pytest.approx(ref["ar_mssd"], abs=1e-12)
     assert got.ar_mspd == pytest.approx(ref["ar_mspd"], abs=1e-12)
     assert 0.05 < got.ar_mspd < 0.95
+
+
+def test_rounded_official_gt_scores_match_toolkit_reference(tmp_path, itodd):
+    # Official GT (LM-O) stores rounded rotations, |R R^T - I| ~ 1e-2; the toolkit scores them
+    # as stored, so must we (it used to refuse the file).
+    models = {3: itodd[3], 19: itodd[19]}
+    rng = np.random.default_rng(5)
+    scenes, ests = {1: {}}, []
+    for iid in range(2):
+        insts = []
+        for k, obj in enumerate([3, 19, 3]):
+            T = _pose(-120 + 120 * k, rng.uniform(-30, 30), rng.uniform(600, 800),
+                      seed=int(rng.integers(1 << 30)))
+            insts.append(SyntheticInstance(obj, T))
+            for s in (2.0, 12.0):
+                Te = T.copy()
+                Te[:3, :3] = Te[:3, :3] @ Rotation.from_rotvec(rng.normal(size=3) * 0.03).as_matrix()
+                Te[:3, 3] += rng.normal(size=3) * s
+                ests.append(_est(Te, float(np.round(rng.random(), 2)), obj=obj, scene=1, im=iid))
+        scenes[1][iid] = insts
+    root = write_synthetic_dataset(tmp_path / "ds", models, scenes, K, W, write_images=False)
+    gt_path = root / "test" / "000001" / "scene_gt.json"
+    gt = json.loads(gt_path.read_text())
+    for ims in gt.values():
+        for g in ims:
+            g["cam_R_m2c"] = np.round(g["cam_R_m2c"], 2).tolist()
+    gt_path.write_text(json.dumps(gt))
+    R = np.array([g["cam_R_m2c"] for ims in gt.values() for g in ims]).reshape(-1, 3, 3)
+    assert 3e-3 < np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() < 0.1
+    csv_path = tmp_path / "res_ds-test.csv"
+    bop.write_pose_results(csv_path, ests)
+    with pytest.warns(UserWarning, match="scene_gt.json: 6 ground-truth rotations"):
+        got = evaluate_pose_results(root, bop.read_pose_results(csv_path))
+    ref = _reference_toolkit(root, csv_path)
+    for key, name in [("mssd", "ap_mssd"), ("mspd", "ap_mspd"), ("mm", "ap_mm"),
+                      ("ar_mssd", "ar_mssd"), ("ar_mspd", "ar_mspd")]:
+        assert getattr(got, name) == pytest.approx(ref[key], abs=1e-12)
+    assert 0.05 < got.ap_mm < 0.95 and got.ap_mspd < 1.0  # both hits and misses
+    # The evaluator scores against the file's rotations bit for bit, not their projections.
+    ds = bop.BopDataset(root)
+    images = load_image_gts(ds, ds.split("test"), [(1, 0), (1, 1)])
+    for iid in (0, 1):
+        for g, e in zip(images[(1, iid)].gts, gt[str(iid)]):
+            np.testing.assert_array_equal(g.R.reshape(-1), e["cam_R_m2c"])

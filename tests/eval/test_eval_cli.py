@@ -4,6 +4,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 
 import cv2
 import numpy as np
@@ -12,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from threept_jax.data import bop
 from threept_jax.eval.__main__ import main
+from threept_jax.eval.bop_eval import evaluate_detection_results, evaluate_results_file
 from threept_jax.testing.bop_synthetic import SyntheticInstance, write_synthetic_dataset
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
@@ -155,3 +157,143 @@ def test_cli_module_entry_point_and_errors(dataset, tmp_path):
         )
         == 2
     )
+
+
+def _write_6d(path, scenes, t_scale=1.0, score=0.8, round_R=None):
+    ests = []
+    for sid, ims in scenes.items():
+        for iid, insts in ims.items():
+            for inst in insts:
+                T = inst.T_cam_obj
+                ests.append(
+                    bop.PoseEstimate(sid, iid, inst.obj_id, score, T[:3, :3], T[:3, 3], 0.5)
+                )
+    bop.write_pose_results(path, ests)
+    if round_R is not None or t_scale != 1.0:  # rewrite columns the writer would refuse
+        lines = path.read_text().splitlines()
+        for n in range(1, len(lines)):
+            c = lines[n].split(",")
+            if round_R is not None:
+                c[4] = " ".join(str(round(float(v), round_R)) for v in c[4].split())
+            c[5] = " ".join(repr(float(v) * t_scale) for v in c[5].split())
+            lines[n] = ",".join(c)
+        path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _cli(root, res, tmp_path, *extra):
+    return main(["--dataset-dir", str(root), "--results", str(res), "--out",
+                 str(tmp_path / "o.json"), "--models-subdir", "models", *extra])
+
+
+@pytest.mark.parametrize(
+    "flag, value",
+    [
+        ("--image-width", "0"),
+        ("--image-width", "-640"),
+        ("--max-estimates-per-image", "0"),
+        ("--rotation-atol", "0"),
+        ("--rotation-atol", "nan"),
+    ],
+)
+def test_cli_refuses_bad_numeric_options(dataset, tmp_path, capsys, flag, value):
+    root, scenes = dataset
+    res = _write_6d(tmp_path / "m_itodd-test.csv", scenes)
+    assert _cli(root, res, tmp_path, flag, value) == 2
+    assert f"error: {flag} must be" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "kwargs, msg",
+    [
+        (dict(image_width=0), "image_width must be an integer >= 1"),
+        (dict(image_width=-640), "image_width must be an integer >= 1"),
+        (dict(image_width=640.5), "image_width must be an integer >= 1"),
+        (dict(max_estimates_per_image=0), "max_estimates_per_image must be an integer >= 1"),
+        (dict(rotation_atol=0.0), "rotation_atol must be a finite number > 0"),
+    ],
+)
+def test_api_refuses_bad_numeric_arguments(dataset, tmp_path, kwargs, msg):
+    root, scenes = dataset
+    res = _write_6d(tmp_path / "m_itodd-test.csv", scenes)
+    with pytest.raises(ValueError, match=msg):
+        evaluate_results_file(root, res, models_subdir="models", **kwargs)
+
+
+def test_cli_rotation_atol(dataset, tmp_path, capsys):
+    root, scenes = dataset
+    # Rounded to 2 decimals, the estimates' R deviate from orthonormal by ~5e-3.
+    res = _write_6d(tmp_path / "m_itodd-test.csv", scenes, round_R=2)
+    assert _cli(root, res, tmp_path) == 2
+    assert "m_itodd-test.csv:2: rotation" in capsys.readouterr().err
+    assert _cli(root, res, tmp_path, "--rotation-atol", "0.02") == 0
+
+
+def test_metre_translations_are_warned_about(dataset, tmp_path):
+    root, scenes = dataset
+    res = _write_6d(tmp_path / "m_itodd-test.csv", scenes, t_scale=1e-3)
+    with pytest.warns(UserWarning, match="translations look like metres"):
+        s = evaluate_results_file(root, res, models_subdir="models")
+    assert s.ap_mssd == 0.0
+    res = _write_6d(tmp_path / "m_itodd-test.csv", scenes)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*look like metres")
+        assert evaluate_results_file(root, res, models_subdir="models").ap_mssd == 1.0
+
+
+def test_cli_refuses_a_nan_score(dataset, tmp_path, capsys):
+    root, scenes = dataset
+    res = _write_6d(tmp_path / "m_itodd-test.csv", scenes, score=float("nan"))
+    assert _cli(root, res, tmp_path) == 2
+    assert "m_itodd-test.csv:2: score must be finite" in capsys.readouterr().err
+
+
+def _dets_2d(root, scenes):
+    sc = bop.BopDataset(root).split("test").scene(4)
+    dets = []
+    for iid, insts in scenes[4].items():
+        for j, inst in enumerate(insts):
+            box = cv2.boundingRect(sc.mask(iid, j).astype(np.uint8))
+            dets.append(bop.Detection2D(4, iid, inst.obj_id, 0.9 - 0.1 * j, box,
+                                        bop.mask_to_rle(sc.mask_visib(iid, j))))
+    return dets
+
+
+def test_2d_rle_is_checked_against_the_image_size(dataset, tmp_path):
+    root, scenes = dataset
+    dets = _dets_2d(root, scenes)
+    small = bop.mask_to_rle(np.ones((240, 320), bool))  # a valid RLE, for another image size
+    bad = [dets[0], bop.Detection2D(4, 1, 3, 0.5, None, small)]
+    with pytest.raises(ValueError, match=r"detection 1 \(scene 4, image 1\).*differs from the "
+                                         r"image size \[480, 640\]"):
+        evaluate_detection_results(root, bad)
+    res = tmp_path / "m_itodd-test.json"
+    bop.write_detection_results(res, bad)
+    with pytest.raises(ValueError, match="differs from the image size"):
+        evaluate_results_file(root, res)
+
+
+def test_2d_truncated_rle_is_refused_by_the_evaluator(dataset):
+    # A truncated RLE used to hang pycocotools' IoU forever.
+    root, scenes = dataset
+    dets = _dets_2d(root, scenes)
+    seg = dict(dets[0].segmentation)
+    seg["counts"] = seg["counts"][: len(seg["counts"]) // 2]
+    bad = [bop.Detection2D(4, 0, 3, 0.9, None, seg)]
+    with pytest.raises(ValueError, match=r"detection 0 \(scene 4, image 0\).*counts sum to"):
+        evaluate_detection_results(root, bad)
+
+
+def test_2d_list_counts_are_evaluated(dataset, tmp_path):
+    # Uncompressed counts (the toolkit's binary_mask_to_rle) score as the compressed ones.
+    root, scenes = dataset
+    dets = []
+    for d in _dets_2d(root, scenes):
+        m = bop.rle_to_mask(d.segmentation).ravel(order="F").astype(int)
+        change = np.flatnonzero(np.diff(np.concatenate([[0], m, [2]])) != 0)
+        counts = np.diff(np.concatenate([[0], change])).tolist()
+        dets.append(bop.Detection2D(d.scene_id, d.im_id, d.obj_id, d.score, d.bbox,
+                                    {"counts": counts, "size": d.segmentation["size"]}))
+    res = tmp_path / "m_itodd-test.json"
+    bop.write_detection_results(res, dets)
+    assert evaluate_results_file(root, res)["segm"]["ap"] == pytest.approx(1.0)

@@ -2,6 +2,7 @@
 
     python -m threept_jax.eval --dataset-dir DIR --split test --results FILE --out scores.json \\
         [--targets FILE] [--models-subdir models_eval] [--sensor NAME] [--image-width PX]
+        [--max-estimates-per-image N] [--rotation-atol TOL]
 
 Writes a JSON with ``ap, ap_mssd, ap_mspd, ap_mm, ar_mssd, ar_mspd, per_object, num_estimates,
 num_gt`` (6D) or ``bbox`` / ``segm`` each ``{ap, ap50, ap75}`` (2D), and prints a table.
@@ -15,7 +16,11 @@ import sys
 
 from threept_jax.data.bop import write_json_atomic
 from threept_jax.eval.bop6d import PoseScores
-from threept_jax.eval.bop_eval import evaluate_results_file
+from threept_jax.eval.bop_eval import (
+    check_positive_float,
+    check_positive_int,
+    evaluate_results_file,
+)
 
 
 def _fmt(v) -> str:
@@ -73,6 +78,13 @@ def main(argv=None) -> int:
         default=None,
         help="top estimates kept per image (default 100, 200 for xyzibd)",
     )
+    ap.add_argument(
+        "--rotation-atol",
+        type=float,
+        default=1e-3,
+        help="largest |R R^T - I| entry accepted for a rotation in a 6D results file "
+        "(default 1e-3); the dataset's GT rotations are accepted as the toolkit does",
+    )
     args = ap.parse_args(argv)
     kwargs = dict(
         split=args.split,
@@ -80,9 +92,20 @@ def main(argv=None) -> int:
         models_subdir=args.models_subdir,
         sensor=args.sensor,
     )
+    try:
+        if args.image_width is not None:
+            check_positive_int(args.image_width, "--image-width")
+        if args.max_estimates_per_image is not None:
+            check_positive_int(args.max_estimates_per_image, "--max-estimates-per-image")
+        check_positive_float(args.rotation_atol, "--rotation-atol")
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     if pathlib.Path(args.results).suffix.lower() == ".csv":
         kwargs.update(
-            image_width=args.image_width, max_estimates_per_image=args.max_estimates_per_image
+            image_width=args.image_width,
+            max_estimates_per_image=args.max_estimates_per_image,
+            rotation_atol=args.rotation_atol,
         )
     try:
         scores = evaluate_results_file(args.dataset_dir, args.results, **kwargs)

@@ -184,11 +184,25 @@ def evaluate_poses(
     ``images`` maps (scene_id, im_id) to ImageGt for at least every target image; ``models``
     maps obj_id to a PreparedModel; ``targets`` gives the image set for AP;
     ``localization_targets`` the bop19 targets for AR (derived from the GT when None)."""
+    if (
+        isinstance(max_estimates_per_image, bool)
+        or not isinstance(max_estimates_per_image, (int, np.integer))
+        or max_estimates_per_image < 1
+    ):
+        raise ValueError(
+            f"max_estimates_per_image must be an integer >= 1, got {max_estimates_per_image!r}"
+        )
     est_list = list(estimates)
     det_images = _ordered_images(targets)
     for key in det_images:
         if key not in images:
             raise ValueError(f"target image scene {key[0]} im {key[1]} has no GT in the dataset")
+    for key, im in images.items():
+        if not im.width > 0:
+            raise ValueError(
+                f"image scene {key[0]} im {key[1]}: width {im.width} px must be > 0 (it "
+                "normalises MSPD to 640 px)"
+            )
 
     # ---- estimate selection (detection): top-k per image, then per (image, object).
     by_image: dict[tuple[int, int], list[int]] = {}

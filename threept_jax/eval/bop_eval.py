@@ -14,7 +14,9 @@ the header of the scene's first target image.
 
 from __future__ import annotations
 
+import math
 import pathlib
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -42,6 +44,25 @@ __all__ = [
     "evaluate_results_file",
     "default_max_estimates",
 ]
+
+
+def check_positive_int(value, name: str, minimum: int = 1) -> int:
+    """``value`` as int when it is an integer >= ``minimum``, else ValueError naming ``name``
+    (the keyword argument, or the CLI flag when the CLI checks)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def check_positive_float(value, name: str) -> float:
+    """``value`` as float when it is a finite number > 0, else ValueError naming ``name``."""
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float, np.integer, np.floating))
+        or not 0 < value < math.inf
+    ):
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    return float(value)
 
 
 def default_max_estimates(dataset: BopDataset) -> int:
@@ -88,10 +109,14 @@ def _scene_width(
     image_width: int | None,
 ) -> int:
     if image_width is not None:
-        return int(image_width)
+        return check_positive_int(image_width, "image_width")
     cam = dataset.camera_info(sensor)
     if cam is not None and "width" in cam:
-        return int(cam["width"])
+        try:
+            return check_positive_int(cam["width"], "width")
+        except ValueError as e:
+            raise ValueError(f"{dataset.root}/camera{'_' + sensor if sensor else ''}.json: {e}; "
+                             "fix the file or pass image_width (--image-width)") from None
     try:
         return split.scene(scene_id).image_size(im_id)[0]
     except FileNotFoundError:
@@ -124,7 +149,8 @@ def load_image_gts(
                 f"target scene {sid} image {iid} has no scene_gt_info entry "
                 "(visib_fract is needed to ignore GT below 10% visibility)"
             )
-        out[(sid, iid)] = ImageGt(scene.cameras[iid].K, widths[sid], scene.gt[iid], infos)
+        # Rotations as stored (possibly rounded), as the toolkit's error functions use them.
+        out[(sid, iid)] = ImageGt(scene.cameras[iid].K, widths[sid], scene.gt_as_stored[iid], infos)
     return out
 
 
@@ -140,7 +166,16 @@ def evaluate_pose_results(
     max_estimates_per_image: int | None = None,
     compute_ar: bool = True,
 ) -> PoseScores:
-    """6D AP (BOP 2024/25) and AR (BOP 2019, MSSD/MSPD) of ``estimates`` on a dataset."""
+    """6D AP (BOP 2024/25) and AR (BOP 2019, MSSD/MSPD) of ``estimates`` on a dataset.
+
+    ``image_width`` (px, > 0) overrides the width that normalises MSPD;
+    ``max_estimates_per_image`` (>= 1) the per-image cap. Warns when the translations look
+    like metres (median |t| below the smallest model diameter)."""
+    if image_width is not None:
+        check_positive_int(image_width, "image_width")
+    if max_estimates_per_image is not None:
+        check_positive_int(max_estimates_per_image, "max_estimates_per_image")
+    _check_finite_estimates(estimates)
     check_consistent_times(estimates)
     dataset = BopDataset(dataset_dir)
     sp = dataset.split(split, sensor)
@@ -152,6 +187,7 @@ def evaluate_pose_results(
     gt_objs = {g.obj_id for im in images.values() for g in im.gts}
     needed = gt_objs & {e.obj_id for e in estimates}
     infos = dataset.models(models_subdir)
+    _warn_if_metres(estimates, infos)
     missing = sorted(gt_objs - set(infos))
     if missing:
         raise ValueError(
@@ -180,6 +216,35 @@ def evaluate_pose_results(
         max_estimates_per_image=max_estimates_per_image,
         compute_ar=compute_ar,
     )
+
+
+def _check_finite_estimates(estimates: Sequence[PoseEstimate]) -> None:
+    if not estimates:
+        return
+    vals = np.array([(e.score, e.time, *e.R.ravel(), *e.t.ravel()) for e in estimates])
+    bad = np.flatnonzero(~np.isfinite(vals).all(1))
+    if len(bad):
+        e = estimates[int(bad[0])]
+        raise ValueError(
+            f"estimate {int(bad[0])} (scene {e.scene_id}, image {e.im_id}, object {e.obj_id}) "
+            "has a non-finite score, time, R or t"
+        )
+
+
+def _warn_if_metres(estimates: Sequence[PoseEstimate], infos) -> None:
+    """Warn when the median |t| is below the smallest model diameter: translations in metres
+    would all score zero, and nothing else would say why."""
+    if not estimates or not infos:
+        return
+    med = float(np.median([np.linalg.norm(e.t) for e in estimates]))
+    d_min = min(m.diameter for m in infos.values())
+    if med < d_min:
+        warnings.warn(
+            f"the median |t| of the estimates is {med:.4g} mm, below the smallest model "
+            f"diameter ({d_min:.4g} mm): the translations look like metres; BOP results "
+            "are in millimetres (multiply t by 1000)",
+            stacklevel=3,
+        )
 
 
 def _coco_gt_for_image(
@@ -284,15 +349,19 @@ def evaluate_detection_results(
         )
     cats = set(dataset.models(models_subdir))
     for sid, iid in order:
-        cats |= {g.obj_id for g in sp.scene(sid).gt[iid]}
+        cats |= {g.obj_id for g in sp.scene(sid).gt_as_stored[iid]}
     return evaluate_coco(detections, gt, sizes, order, sorted(cats))
 
 
-def evaluate_results_file(dataset_dir, results_path, **kwargs):
-    """Evaluate a ``.csv`` (6D, returns PoseScores) or ``.json`` (2D, returns a dict)."""
+def evaluate_results_file(dataset_dir, results_path, *, rotation_atol: float = 1e-3, **kwargs):
+    """Evaluate a ``.csv`` (6D, returns PoseScores) or ``.json`` (2D, returns a dict).
+
+    ``rotation_atol`` (> 0) is the largest |R R^T - I| entry accepted in a 6D results file;
+    other keywords go to `evaluate_pose_results` / `evaluate_detection_results`."""
+    check_positive_float(rotation_atol, "rotation_atol")
     p = pathlib.Path(results_path)
     if p.suffix.lower() == ".csv":
-        return evaluate_pose_results(dataset_dir, read_pose_results(p), **kwargs)
+        return evaluate_pose_results(dataset_dir, read_pose_results(p, rotation_atol), **kwargs)
     if p.suffix.lower() == ".json":
         kwargs.pop("image_width", None)
         kwargs.pop("max_estimates_per_image", None)

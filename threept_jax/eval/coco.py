@@ -28,6 +28,7 @@ from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
 from threept_jax.data.bop import Detection2D
+from threept_jax.data.bop.results import validate_rle
 
 __all__ = ["BopCOCOeval", "coco_gt_annotation", "evaluate_coco"]
 
@@ -112,6 +113,12 @@ def evaluate_coco(
     for s, _ in image_order:
         scene_rank.setdefault(s, len(scene_rank))
     dets = [d for d in detections if (d.scene_id, d.im_id) in img_ids]
+    for n, d in enumerate(detections):
+        # A broken RLE hangs or crashes pycocotools: check it against the GT image size.
+        if d.segmentation is not None and (d.scene_id, d.im_id) in img_ids:
+            w, h = image_sizes[(d.scene_id, d.im_id)]
+            where = f"detection {n} (scene {d.scene_id}, image {d.im_id})"
+            validate_rle(d.segmentation, where, (int(h), int(w)))
     dets = sorted(dets, key=lambda d: scene_rank[d.scene_id])
     out: dict[str, dict[str, float]] = {}
     for iou_type in iou_types:
