@@ -409,3 +409,43 @@ def test_gt_that_is_not_a_rotation_is_refused(tmp_path, R, msg):
     _write_gt(tmp_path / "000001", [R])
     with pytest.raises(ValueError, match=f"scene_gt.json image 0 gt 0 cam_R_m2c.*{msg}"):
         _ = bop.BopScene(tmp_path / "000001").gt_as_stored
+
+
+@pytest.mark.parametrize("stem, content, where", [
+    ("scene_gt", {"0": [{"cam_R_m2c": [1, 0, 0, 0, 1, 0, 0, 0, 1], "cam_t_m2c": [0, 0, 9],
+                         "obj_id": None}]}, "image 0"),
+    ("scene_gt", {"0": {"obj_id": 1}}, "image 0"),
+    ("scene_gt", {"0": [{"cam_R_m2c": [1, 0, 0, 0, 1, 0, 0, 0, [1]], "cam_t_m2c": [0, 0, 9],
+                         "obj_id": 1}]}, "image 0"),
+    ("scene_camera", {"0": {"cam_K": None}}, "image 0"),
+    ("scene_gt_info", {"3": [{"bbox_obj": [0, 0, 1, 1]}]}, "image 3"),
+])
+def test_malformed_scene_entries_name_file_and_entry(tmp_path, stem, content, where):
+    """A structurally wrong entry (null id, dict for a list, nested value, missing key) is a
+    ValueError naming the file and the image, not a TypeError/KeyError from the parsing."""
+    scene = tmp_path / "000001"
+    scene.mkdir()
+    (scene / f"{stem}.json").write_text(json.dumps(content))
+    s = bop.BopScene(scene)
+    attr = {"scene_gt": "gt", "scene_camera": "cameras", "scene_gt_info": "gt_info"}[stem]
+    with pytest.raises(ValueError, match=rf"{stem}\.json {where}"):
+        getattr(s, attr)
+
+
+@pytest.mark.parametrize("content", [
+    [{"scene_id": 1, "im_id": 2.5}], [{"scene_id": 1, "im_id": True}], [7], [None],
+    [{"scene_id": "1", "im_id": 2}],
+])
+def test_malformed_targets_name_the_entry(tmp_path, content):
+    """Ids must be integers: a fraction, a boolean or a string is refused, not truncated."""
+    p = tmp_path / "test_targets_bop19.json"
+    p.write_text(json.dumps(content))
+    with pytest.raises(ValueError, match=r"test_targets_bop19\.json entry 0"):
+        bop.load_targets(p)
+
+
+def test_binary_json_is_a_value_error_naming_the_file(tmp_path):
+    p = tmp_path / "models_info.json"
+    p.write_bytes(b"\x80\xff{")
+    with pytest.raises(ValueError, match="models_info.json is not UTF-8"):
+        bop.load_models_info(p)

@@ -65,13 +65,28 @@ def _int_keys(d, path) -> dict:
     return out
 
 
+def _json_int(v) -> int:
+    """An id or count from JSON: an integer (or an integral float, as NumPy writers produce);
+    refuses booleans, fractions, NaN and strings instead of truncating them."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise TypeError(f"expected an integer, got {v!r}")
+    if isinstance(v, float) and not v.is_integer():
+        raise ValueError(f"expected an integer, got {v!r}")
+    return int(v)
+
+
 @contextlib.contextmanager
 def entry_errors(where: str, expected: str):
     """Report a structurally wrong JSON entry (a missing key, a list where a number belongs, a
-    wrong length) as a ValueError naming the entry and the expected form, instead of the
-    TypeError or KeyError it raises deep inside the parsing."""
+    NaN where an integer belongs, a wrong length) as a ValueError naming ``where`` (the file and
+    the entry) and the expected form, instead of the TypeError or KeyError raised deep inside
+    the parsing. ValueErrors that already name ``where`` pass through unchanged."""
     try:
         yield
+    except ValueError as e:
+        if where in str(e):
+            raise
+        raise ValueError(f"{where}: {e}; expected {expected}") from None
     except (KeyError, TypeError, IndexError, AttributeError, OverflowError) as e:
         raise ValueError(
             f"{where}: malformed entry ({type(e).__name__}: {e}); expected {expected}") from None

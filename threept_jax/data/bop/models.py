@@ -7,7 +7,13 @@ from collections.abc import Iterable, Mapping
 
 import numpy as np
 
-from threept_jax.data.bop.json_format import _int_keys, _load_json, write_json_atomic
+from threept_jax.data.bop.json_format import (
+    _int_keys,
+    _json_int,
+    _load_json,
+    entry_errors,
+    write_json_atomic,
+)
 from threept_jax.data.bop.types import MultiviewTarget, ObjectModel, Target
 from threept_jax.geometry.diameter import MIN_DIAMETER_MM, mesh_diameter
 from threept_jax.geometry.symmetry import Symmetries
@@ -61,7 +67,11 @@ def load_models_info(path) -> dict[int, ObjectModel]:
     """Parse a ``models_info.json`` into {obj_id: ObjectModel} (mesh paths beside it)."""
     path = pathlib.Path(path)
     raw = _int_keys(_load_json(path), path)
-    return {k: _parse_model_info(k, v, path, path.parent) for k, v in sorted(raw.items())}
+    out = {}
+    for k, v in sorted(raw.items()):
+        with entry_errors(f"{path} object {k}", MODEL_INFO_FORM):
+            out[k] = _parse_model_info(k, v, path, path.parent)
+    return out
 
 
 def load_models(models_dir) -> dict[int, ObjectModel]:
@@ -83,6 +93,12 @@ def write_models_info(path, models: Mapping[int, ObjectModel] | Iterable[ObjectM
     write_json_atomic(path, {int(m.obj_id): m.to_json() for m in models})
 
 
+MODEL_INFO_FORM = ("{diameter: mm, min_x, min_y, min_z, size_x, size_y, size_z: mm[, "
+                   "symmetries_discrete, symmetries_continuous]}")
+TARGET_FORM = "{scene_id: int, im_id: int[, obj_id: int, inst_count: int]}"
+MULTIVIEW_FORM = "{scene_id: int, im_id or im_ids: an int or a list of ints}"
+
+
 # ----------------------------------------------------------------------------- targets
 def load_targets(path) -> list[Target]:
     """Load ``test_targets_bop19.json`` (with obj_id, inst_count) or ``_bop24.json`` (images)."""
@@ -95,23 +111,26 @@ def load_targets(path) -> list[Target]:
         )
     out = []
     for i, t in enumerate(raw):
-        if "scene_id" not in t or "im_id" not in t:
-            raise ValueError(f"{path}: entry {i} lacks scene_id or im_id: {t}")
-        if isinstance(t["im_id"], list):
-            raise ValueError(
-                f"{path}: entry {i} lists several images; this is a multi-view "
-                "targets file (read it with load_multiview_targets); per-image "
-                "evaluation needs test_targets_bop24.json or _bop19.json"
-            )
-        out.append(
-            Target(
-                int(t["scene_id"]),
-                int(t["im_id"]),
-                None if t.get("obj_id") is None else int(t["obj_id"]),
-                None if t.get("inst_count") is None else int(t["inst_count"]),
-            )
-        )
+        with entry_errors(f"{path} entry {i}", TARGET_FORM):
+            out.append(_parse_target(t, f"{path} entry {i}"))
     return out
+
+
+def _parse_target(t, where: str) -> Target:
+    if "scene_id" not in t or "im_id" not in t:
+        raise ValueError(f"{where} lacks scene_id or im_id: {t}")
+    if isinstance(t["im_id"], list):
+        raise ValueError(
+            f"{where} lists several images; this is a multi-view targets file (read it with "
+            "load_multiview_targets); per-image evaluation needs test_targets_bop24.json or "
+            "_bop19.json"
+        )
+    return Target(
+        _json_int(t["scene_id"]),
+        _json_int(t["im_id"]),
+        None if t.get("obj_id") is None else _json_int(t["obj_id"]),
+        None if t.get("inst_count") is None else _json_int(t["inst_count"]),
+    )
 
 
 def write_targets(path, targets: Iterable[Target]) -> None:
@@ -136,18 +155,23 @@ def load_multiview_targets(path) -> list[MultiviewTarget]:
         raise ValueError(f"{path}: expected a JSON list of multi-view groups")
     out = []
     for i, g in enumerate(raw):
-        views = g.get("im_ids", g.get("im_id"))
-        if "scene_id" not in g or views is None:
-            raise ValueError(f"{path}: group {i} needs scene_id and im_id/im_ids: {g}")
-        if not isinstance(views, list):
-            views = [views]
-        parsed = []
-        for v in views:
-            if isinstance(v, (list, tuple)) and len(v) == 2:
-                parsed.append((str(v[0]), int(v[1])))
-            elif isinstance(v, Mapping):
-                parsed.append((v.get("sensor"), int(v["im_id"])))
-            else:
-                parsed.append((None, int(v)))
-        out.append(MultiviewTarget(int(g["scene_id"]), tuple(parsed)))
+        with entry_errors(f"{path} group {i}", MULTIVIEW_FORM):
+            out.append(_parse_multiview_group(g, f"{path} group {i}"))
     return out
+
+
+def _parse_multiview_group(g, where: str) -> MultiviewTarget:
+    views = g.get("im_ids", g.get("im_id"))
+    if "scene_id" not in g or views is None:
+        raise ValueError(f"{where} needs scene_id and im_id/im_ids: {g}")
+    if not isinstance(views, list):
+        views = [views]
+    parsed = []
+    for v in views:
+        if isinstance(v, (list, tuple)) and len(v) == 2:
+            parsed.append((str(v[0]), _json_int(v[1])))
+        elif isinstance(v, Mapping):
+            parsed.append((v.get("sensor"), _json_int(v["im_id"])))
+        else:
+            parsed.append((None, _json_int(v)))
+    return MultiviewTarget(_json_int(g["scene_id"]), tuple(parsed))

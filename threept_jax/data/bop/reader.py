@@ -9,8 +9,9 @@ import warnings
 from collections.abc import Mapping
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from threept_jax.data.bop.json_format import _int_keys, _load_json
+from threept_jax.data.bop.json_format import _int_keys, _json_int, _load_json, entry_errors
 from threept_jax.data.bop.models import load_models, load_multiview_targets, load_targets
 from threept_jax.data.bop.types import (
     IMAGE_EXTS,
@@ -58,6 +59,18 @@ def _suffix(sensor: str | None) -> str:
     return f"_{sensor}" if sensor else ""
 
 
+CAMERA_FORM = "{cam_K: [9 numbers], depth_scale: number[, cam_R_w2c, cam_t_w2c]}"
+GT_FORM = "a list of {cam_R_m2c: [9 numbers], cam_t_m2c: [3 numbers] (mm), obj_id: int}"
+GT_INFO_FORM = ("a list of {bbox_obj, bbox_visib: [x, y, w, h], px_count_all, px_count_valid, "
+                "px_count_visib: int, visib_fract: number}")
+
+
+def _entry_list(v) -> list:
+    if not isinstance(v, list):
+        raise TypeError(f"a list of instances, got {type(v).__name__}")
+    return v
+
+
 def _parse_camera(entry: Mapping, where: str) -> Camera:
     model = entry.get("cam_model")
     if "cam_K" in entry:
@@ -96,13 +109,11 @@ def _parse_gt(entry, where: str) -> tuple[GtInstance, float]:
     if not np.all(np.isfinite(t)):
         raise ValueError(f"{where}: cam_t_m2c has non-finite values: {t.tolist()}")
     dev = float(np.abs(R @ R.T - np.eye(3)).max())
-    return GtInstance(int(entry["obj_id"]), make_pose(R, t)), dev
+    return GtInstance(_json_int(entry["obj_id"]), make_pose(R, t)), dev
 
 
 def _nearest_rotation(T: np.ndarray) -> np.ndarray:
     """T [4, 4] with its rotation block replaced by the nearest rotation (Frobenius norm)."""
-    from scipy.spatial.transform import Rotation
-
     T = T.copy()
     T[:3, :3] = Rotation.from_matrix(T[:3, :3]).as_matrix()
     return T
@@ -140,7 +151,11 @@ class BopScene:
         """{im_id: Camera} from ``scene_camera[_SENSOR].json``."""
         p = self._file("scene_camera")
         raw = _int_keys(_load_json(p), p)
-        return {k: _parse_camera(v, f"{p} image {k}") for k, v in sorted(raw.items())}
+        out = {}
+        for k, v in sorted(raw.items()):
+            with entry_errors(f"{p} image {k}", CAMERA_FORM):
+                out[k] = _parse_camera(v, f"{p} image {k}")
+        return out
 
     @functools.cached_property
     def gt_as_stored(self) -> dict[int, list[GtInstance]]:
@@ -153,11 +168,12 @@ class BopScene:
         out, worst, n_off = {}, 0.0, 0
         for k, v in sorted(raw.items()):
             out[k] = []
-            for i, e in enumerate(v):
-                g, dev = _parse_gt(e, f"{p} image {k} gt {i}")
-                out[k].append(g)
-                worst = max(worst, dev)
-                n_off += dev > GT_ROTATION_WARN_DEVIATION
+            with entry_errors(f"{p} image {k}", GT_FORM):
+                for i, e in enumerate(_entry_list(v)):
+                    g, dev = _parse_gt(e, f"{p} image {k} gt {i}")
+                    out[k].append(g)
+                    worst = max(worst, dev)
+                    n_off += dev > GT_ROTATION_WARN_DEVIATION
         if n_off:
             warnings.warn(
                 f"{p}: {n_off} ground-truth rotations are not orthonormal to "
@@ -188,7 +204,10 @@ class BopScene:
         """{im_id: [GtInfo]} from ``scene_gt_info[_SENSOR].json``."""
         p = self._file("scene_gt_info")
         raw = _int_keys(_load_json(p), p)
-        out = {k: [_parse_gt_info(e) for e in v] for k, v in sorted(raw.items())}
+        out = {}
+        for k, v in sorted(raw.items()):
+            with entry_errors(f"{p} image {k}", GT_INFO_FORM):
+                out[k] = [_parse_gt_info(e) for e in _entry_list(v)]
         gt_path = self._file("scene_gt")
         if gt_path.is_file():
             for k, v in self.gt_as_stored.items():
