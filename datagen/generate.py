@@ -22,29 +22,43 @@ and ``--meshes``: shards of one dataset can be merged. Give every shard its own 
 (``OUT/shard-$I``): a folder that holds another shard's manifest is refused.
 
 **Resume.** A scene is written to ``{id}.tmp/`` and renamed to ``{id}/`` when complete; a rerun
-with the same arguments skips complete scenes and deletes and redoes a partial one. Every file
-is written atomically (temporary file and rename), and the output is byte-identical to an
-uninterrupted run (the manifest has no timestamps).
+with the same arguments skips complete scenes and redoes a partial one. Every file is written
+atomically (temporary file and rename), and the output is byte-identical to an uninterrupted run
+(the manifest has no timestamps).
+
+**One writer per shard.** A run holds an exclusive lock (``fcntl.flock``) on
+``OUT/{split}_pbr/.datagen.lock`` while it writes; a second run of the same shard is refused
+with the holder's process id. The lock dies with its process (no stale locks), and a run that
+takes it first deletes the temporary folders and files (``*.tmp``) a killed run left behind.
 
 **Held-out meshes.** ``--val-fraction F`` assigns each mesh to ``val`` when a hash of its pool
 name falls below F (stable when meshes are added), and ``--split`` picks which meshes the run
-may use: run once with ``--split train`` and once with ``--split val`` (same seed and meshes).
-With ``--val-fraction 0`` every mesh is allowed, and held-out sets come from separate
+may use: run once with ``--split train`` and once with ``--split val`` into one ``--out``, with
+the same ``--seed``, ``--meshes`` and ``--val-fraction``: a split whose sibling's manifest says
+otherwise (or holds out another mesh set) is refused, as held-out meshes would leak into
+training. With ``--val-fraction 0`` every mesh is allowed, and held-out sets come from separate
 ``--meshes`` instead.
+
+Bad arguments and output folders that cannot take the run are reported as ``error: ...`` (exit
+status 2) before any slow work.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import errno
+import fcntl
 import hashlib
 import json
 import logging
 import os
 import pathlib
+import socket
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -63,6 +77,14 @@ SPLITS = ("train", "val")
 _PROCEDURAL_STREAM = 0x5052_4F43
 _SPLIT_STREAM = {"train": 0x5452_4149, "val": 0x5641_4C20}
 INFO_FILE = "datagen_info.json"
+LOCK_FILE = ".datagen.lock"
+
+
+class GenerateError(ValueError):
+    """Bad arguments, or an output folder that cannot take this run (the message names the fix).
+
+    The command line prints it as ``error: ...`` and exits with status 2.
+    """
 
 
 # --------------------------------------------------------------------------------------------
@@ -130,6 +152,15 @@ def pool_fingerprint(pool: M.MeshPool) -> str:
     return h.hexdigest()[:16]
 
 
+def held_out(pool: M.MeshPool, val_fraction: float) -> dict[str, Any]:
+    """The meshes held out for ``val`` (none when ``val_fraction`` is 0): count and fingerprint,
+    as the manifest's ``held_out`` records them."""
+    names = sorted(r.name for r in pool.records
+                   if val_fraction > 0 and mesh_split(r.name, val_fraction) == "val")
+    digest = hashlib.sha256("".join(f"{n}\n" for n in names).encode()).hexdigest()[:16]
+    return {"num_meshes": len(names), "fingerprint": digest}
+
+
 def shard_scene_ids(num_scenes: int, shard: int, num_shards: int) -> range:
     """Scene ids of one shard: a contiguous block, sizes differing by at most one."""
     return range(shard * num_scenes // num_shards, (shard + 1) * num_scenes // num_shards)
@@ -174,34 +205,154 @@ def _manifest_identity(m: dict[str, Any]) -> dict[str, Any]:
     return {k: m.get(k) for k in keys}
 
 
-def check_output(out: pathlib.Path, split_dir: pathlib.Path, manifest: dict[str, Any]) -> None:
-    """Refuse an output folder that holds another configuration or another shard."""
-    mpath = split_dir / "manifest.json"
-    if mpath.is_file():
-        old = json.loads(mpath.read_text())
-        if old.get("shard") != manifest["shard"] or old.get("num_shards") != manifest[
-            "num_shards"
-        ]:
-            raise SystemExit(
-                f"{out} already holds shard {old.get('shard')} of {old.get('num_shards')}; "
-                f"every shard needs its own --out (e.g. --out {out.parent}/shard-$I)"
-            )
-        if _manifest_identity(old) != _manifest_identity(manifest):
-            diff = [k for k, v in _manifest_identity(manifest).items() if old.get(k) != v]
-            raise SystemExit(
-                f"{mpath} was written with different arguments ({', '.join(diff)} differ); "
-                "rerun with the same arguments to resume, or choose a new --out"
-            )
+def check_siblings(out: pathlib.Path, manifest: dict[str, Any]) -> None:
+    """Refuse a split whose sibling splits in ``out`` (their manifests) were generated from
+    another seed, mesh pool or units, or hold out other meshes: the splits share ``models/``,
+    and a mesh held out from training must stay out of it, whichever split came first."""
+    mine = manifest["config"]
     for other in sorted(out.glob("*_pbr/manifest.json")):
-        if other == mpath:
-            continue
         o = json.loads(other.read_text())
-        same_pool = o.get("pool", {}).get("fingerprint") == manifest["pool"]["fingerprint"]
-        if not same_pool or o.get("seed") != manifest["seed"]:
-            raise SystemExit(
-                f"{other} was generated from another mesh pool or seed; the splits of one "
-                "--out share models/ and must use the same --meshes and --seed"
+        if o.get("split") == manifest["split"]:
+            continue  # this split's own manifest: check_output
+        theirs = o.get("config", {})
+        # (flag, this run's value, the sibling's, whether they differ)
+        rows = [(flag, mine_v, their_v, mine_v != their_v) for flag, mine_v, their_v in (
+            ("--seed", manifest["seed"], o.get("seed")),
+            ("--val-fraction", mine["val_fraction"], theirs.get("val_fraction")),
+            ("--mesh-units", mine["mesh_units"], theirs.get("mesh_units")),
+            ("--procedural-max-faces", mine["procedural_max_faces"],
+             theirs.get("procedural_max_faces")),
+        )]
+        # Equal pools may be named by other paths: the pool's fingerprint decides.
+        rows.append(("--meshes", " ".join(mine["meshes"]), " ".join(theirs.get("meshes", [])),
+                     o.get("pool", {}).get("fingerprint") != manifest["pool"]["fingerprint"]))
+        for flag, value, seen, differ in rows:
+            if differ:
+                raise GenerateError(
+                    f"{flag} {value} differs from {flag} {seen} of the {o.get('split')} split "
+                    f"in this --out ({other}); the splits of one --out share models/ and must "
+                    "hold out the same meshes, or held-out meshes leak into training: rerun "
+                    f"with {flag} {seen}, or choose a new --out"
+                )
+        if "held_out" in o and o["held_out"] != manifest["held_out"]:
+            raise GenerateError(
+                f"{other} holds out {o['held_out']['num_meshes']} meshes (fingerprint "
+                f"{o['held_out']['fingerprint']}), this run would hold out "
+                f"{manifest['held_out']['num_meshes']} ({manifest['held_out']['fingerprint']}) "
+                "from the same arguments (another generator version?); regenerate both splits "
+                "into a new --out"
             )
+
+
+def check_output(split_dir: pathlib.Path, manifest: dict[str, Any]) -> None:
+    """Refuse a split folder that holds another configuration or another shard."""
+    mpath = split_dir / "manifest.json"
+    if not mpath.is_file():
+        return
+    out = split_dir.parent
+    old = json.loads(mpath.read_text())
+    if (old.get("shard"), old.get("num_shards")) != (manifest["shard"], manifest["num_shards"]):
+        raise GenerateError(
+            f"{out} already holds shard {old.get('shard')} of {old.get('num_shards')}; "
+            f"every shard needs its own --out (e.g. --out {out.parent}/shard-$I)"
+        )
+    if _manifest_identity(old) != _manifest_identity(manifest):
+        diff = [k for k, v in _manifest_identity(manifest).items() if old.get(k) != v]
+        raise GenerateError(
+            f"{mpath} was written with different arguments ({', '.join(diff)} differ); "
+            "rerun with the same arguments to resume, or choose a new --out"
+        )
+
+
+@contextlib.contextmanager
+def shard_lock(split_dir: pathlib.Path, shard: int, num_shards: int) -> Iterator[None]:
+    """Hold the exclusive writer lock of ``split_dir`` (``LOCK_FILE``, ``fcntl.flock``).
+
+    Raises GenerateError naming the holder when another process holds it. While held, the file
+    names this process; it is emptied on release, so finished outputs stay byte-identical. The
+    kernel drops the lock when its process dies: a lock is never stale.
+    """
+    split_dir.mkdir(parents=True, exist_ok=True)
+    fd = os.open(split_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                holder = json.loads(os.pread(fd, 4096, 0))
+            except ValueError:  # taken a moment ago, not yet signed
+                holder = {}
+            pid = holder.get("pid", "?")
+            raise GenerateError(
+                f"shard {holder.get('shard', '?')} of {holder.get('num_shards', '?')} in "
+                f"{split_dir} is being written by process {pid} on host "
+                f"{holder.get('host', '?')}; wait for it to finish, or stop it (kill {pid}) "
+                "and rerun the same command to resume"
+            ) from None
+        except OSError as e:
+            if e.errno not in (errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP):
+                raise
+            warnings.warn(f"{split_dir} does not support file locks ({e}); make sure no other "
+                          "run writes this shard", stacklevel=3)
+        sign = {"pid": os.getpid(), "host": socket.gethostname(), "shard": shard,
+                "num_shards": num_shards}
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps(sign).encode(), 0)
+        try:
+            yield
+        finally:
+            os.ftruncate(fd, 0)
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def remove_stale_temporaries(split_dir: pathlib.Path) -> list[str]:
+    """Delete the ``*.tmp`` folders (partial scenes) and files (atomic writes) a killed run left
+    in ``split_dir``; call with the shard lock held. Returns their names."""
+    stale = sorted(p for p in split_dir.iterdir() if p.name.endswith(".tmp"))
+    for p in stale:
+        if p.is_dir() and not p.is_symlink():
+            S.remove_tree(p)
+        else:
+            p.unlink()
+    return [p.name for p in stale]
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """Refuse out-of-range numeric options, naming the flag, before any slow work."""
+    (w, h), (dlo, dhi), (xlo, xhi) = args.resolution, args.distinct, args.distractors
+    rules = [
+        (args.num_scenes >= 1, f"--num-scenes must be >= 1, got {args.num_scenes}"),
+        (args.images_per_scene >= 1,
+         f"--images-per-scene must be >= 1, got {args.images_per_scene}"),
+        (args.views >= 1, f"--views must be >= 1, got {args.views}"),
+        (min(w, h) >= S.MIN_SIDE,
+         f"--resolution W H must be at least {S.MIN_SIDE} {S.MIN_SIDE}, got {w} {h}"),
+        (args.spp >= 1, f"--spp must be >= 1, got {args.spp}"),
+        (args.seed >= 0, f"--seed must be >= 0 (NumPy seed sequences take non-negative "
+                         f"integers), got {args.seed}"),
+        (args.num_shards >= 1, f"--num-shards must be >= 1, got {args.num_shards}"),
+        (0 <= args.shard < args.num_shards,
+         f"--shard must lie in [0, --num-shards), got {args.shard} of {args.num_shards}"),
+        (0.0 <= args.val_fraction < 1.0,
+         f"--val-fraction must lie in [0, 1), got {args.val_fraction}"),
+        (args.instances >= 1, f"--instances must be >= 1, got {args.instances}"),
+        (1 <= dlo <= dhi, f"--distinct MIN MAX needs 1 <= MIN <= MAX, got {dlo} {dhi}"),
+        (0 <= xlo <= xhi, f"--distractors MIN MAX needs 0 <= MIN <= MAX, got {xlo} {xhi}"),
+        (0.0 <= args.closeup_probability <= 1.0,
+         f"--closeup-probability must lie in [0, 1], got {args.closeup_probability}"),
+        (args.max_depth == -1 or args.max_depth >= S.MIN_MAX_DEPTH,
+         f"--max-depth must be -1 (unbounded) or >= {S.MIN_MAX_DEPTH}, got {args.max_depth}: "
+         "Mitsuba's path tracer renders nothing at 0 and only the light sources at 1 (black "
+         "objects)"),
+        (args.procedural_max_faces >= P.MIN_MAX_FACES,
+         f"--procedural-max-faces must be >= {P.MIN_MAX_FACES} (the simplest part families "
+         f"need them), got {args.procedural_max_faces}"),
+        (args.threads >= 0, f"--threads must be >= 0 (0: all cores), got {args.threads}"),
+    ]
+    for ok, message in rules:
+        if not ok:
+            raise GenerateError(message)
 
 
 # --------------------------------------------------------------------------------------------
@@ -209,9 +360,12 @@ def check_output(out: pathlib.Path, split_dir: pathlib.Path, manifest: dict[str,
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    """Generate this shard's scenes (resuming); returns the final manifest."""
-    from tqdm import tqdm
+    """Generate this shard's scenes (resuming); returns the final manifest.
 
+    Raises GenerateError (before any slow work where it can) for bad arguments and output
+    folders that cannot take the run.
+    """
+    check_args(args)
     try:  # configuration errors: one clear line, no traceback
         cfg = S.SceneConfig(
             resolution=(args.resolution[0], args.resolution[1]),
@@ -228,30 +382,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         )
         pool = build_pool(args.meshes, args.seed, args.mesh_units, args.procedural_max_faces)
     except ValueError as e:
-        raise SystemExit(f"error: {e}") from e
-    if args.num_scenes < 1 or args.num_shards < 1:
-        raise SystemExit("--num-scenes and --num-shards must be >= 1")
-    if not 0 <= args.shard < args.num_shards:
-        raise SystemExit(f"--shard must lie in [0, --num-shards), got {args.shard} of "
-                         f"{args.num_shards}")
-    if not 0.0 <= args.val_fraction < 1.0:
-        raise SystemExit(f"--val-fraction must lie in [0, 1), got {args.val_fraction}")
-    if args.threads > 0:
-        import drjit as dr
-
-        from threept_jax.render.mitsuba_backend import load_mitsuba
-
-        load_mitsuba()
-        dr.set_thread_count(args.threads)
+        raise GenerateError(str(e)) from e
     out = pathlib.Path(args.out)
-    models_dir = out / "models"
     split_dir = out / f"{args.split}_pbr"
     candidates = split_candidates(pool, args.split, args.val_fraction)
-    if not candidates:
-        raise SystemExit(
-            f"no mesh of the pool ({len(pool)} meshes) falls in split {args.split!r} at "
-            f"--val-fraction {args.val_fraction}; raise it or add meshes"
-        )
     scene_ids = shard_scene_ids(args.num_scenes, args.shard, args.num_shards)
     config = {k: v for k, v in dataclasses.asdict(cfg).items()}
     config.update(meshes=list(args.meshes), mesh_units=args.mesh_units,
@@ -268,11 +402,42 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "config": config,
         "pool": {"num_meshes": len(pool), "fingerprint": pool_fingerprint(pool),
                  "split_meshes": len(candidates)},
+        "held_out": held_out(pool, args.val_fraction),
         "scene_ids": [scene_ids.start, scene_ids.stop],
         "status": "running",
     }
-    split_dir.mkdir(parents=True, exist_ok=True)
-    check_output(out, split_dir, manifest)
+    check_siblings(out, manifest)
+    if not candidates:
+        raise GenerateError(
+            f"no mesh of the pool ({len(pool)} meshes) falls in split {args.split!r} at "
+            f"--val-fraction {args.val_fraction}; raise it or add meshes"
+        )
+    if args.threads > 0:
+        import drjit as dr
+
+        from threept_jax.render.mitsuba_backend import load_mitsuba
+
+        load_mitsuba()
+        dr.set_thread_count(args.threads)
+    with shard_lock(split_dir, args.shard, args.num_shards):
+        check_output(split_dir, manifest)
+        remove_stale_temporaries(split_dir)
+        return _write_shard(args, cfg, pool, candidates, split_dir, manifest)
+
+
+def _write_shard(
+    args: argparse.Namespace,
+    cfg: S.SceneConfig,
+    pool: M.MeshPool,
+    candidates: list[int],
+    split_dir: pathlib.Path,
+    manifest: dict[str, Any],
+) -> dict[str, Any]:
+    """The scenes of the shard (``run`` holds its lock), then the final manifest."""
+    from tqdm import tqdm
+
+    models_dir = split_dir.parent / "models"
+    scene_ids = range(*manifest["scene_ids"])
     atomic_write_json(split_dir / "manifest.json", manifest, indent=1, sort_keys=True)
     models_dir.mkdir(parents=True, exist_ok=True)
     update_models_info(models_dir, pool)
@@ -292,9 +457,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         final = split_dir / f"{s:06d}"
         if (final / INFO_FILE).is_file():
             continue
-        tmp = split_dir / f"{s:06d}.tmp"
-        if tmp.exists():
-            S.remove_tree(tmp)  # a partial scene of a killed run: redo it
+        tmp = split_dir / f"{s:06d}.tmp"  # partial scenes of killed runs are removed by now
         if final.exists():
             S.remove_tree(final)
         res = S.generate_scene(tmp, s, scene_rng(args.seed, args.split, s), assets, candidates,
@@ -388,7 +551,11 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     # trimesh logs a traceback for every PLY whose texture file is missing (most YCB-V models
     # in ../shared); such meshes render untextured, which is not an error here.
     logging.getLogger("trimesh").setLevel(logging.CRITICAL)
-    return run(build_parser().parse_args(argv))
+    try:
+        return run(build_parser().parse_args(argv))
+    except GenerateError as e:
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

@@ -43,6 +43,7 @@ import itertools
 import json
 import multiprocessing
 import pathlib
+import sys
 from collections.abc import Sequence
 from typing import Any
 
@@ -57,10 +58,17 @@ from threept_jax.data.files import atomic_path, atomic_write_json
 
 SHARD_PATTERN = "shard-{:05d}-of-{:05d}.array_record"
 TABLE = "objects.json"
+#: Smallest bank render side, pixels (as ``python -m datagen.banks --size``).
+MIN_BANK_SIZE = 8
+#: Fewest faces a closed mesh has (a tetrahedron): the smallest decimation budget for banks.
+MIN_BANK_FACES = 4
 
 
 class PackError(ValueError):
-    """A source cannot be packed (the message names the fix)."""
+    """A source cannot be packed, or an option is out of range (the message names the fix).
+
+    The command line prints it as ``error: ...`` and exits with status 2.
+    """
 
 
 # --------------------------------------------------------------------------------------------
@@ -320,13 +328,22 @@ def pack(
     quiet: bool = False,
 ) -> dict[str, Any]:
     """Pack ``scenes`` (BOP split folders) into ``out/name``; returns the index (module doc)."""
+    rules = [
+        (num_shards >= 1, f"--num-shards must be >= 1, got {num_shards}"),
+        (workers >= 1, f"--workers must be >= 1, got {workers}"),
+        (bank_size >= MIN_BANK_SIZE, f"--bank-size must be >= {MIN_BANK_SIZE}, got {bank_size}"),
+        (num_templates >= 1, f"--num-templates must be >= 1, got {num_templates}"),
+        (bank_max_faces is None or bank_max_faces >= MIN_BANK_FACES,
+         f"--bank-max-faces must be >= {MIN_BANK_FACES}, got {bank_max_faces}"),
+        (image_format in ("png", "jpg"),
+         f"--image-format must be png or jpg, got {image_format!r}"),
+    ]
+    for ok, message in rules:
+        if not ok:
+            raise PackError(message)
     from array_record.python.array_record_module import ArrayRecordWriter
     from tqdm import tqdm
 
-    if num_shards < 1:
-        raise PackError(f"--num-shards must be >= 1, got {num_shards}")
-    if image_format not in ("png", "jpg"):
-        raise PackError(f"--image-format must be png or jpg, got {image_format!r}")
     out = pathlib.Path(out)
     sources = [open_source(s, models, sensor) for s in scenes]
     used, counts = [], []
@@ -435,7 +452,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                      num_templates=args.num_templates, bank_max_faces=args.bank_max_faces,
                      bank_backend=args.bank_backend, quiet=args.quiet)
     except (PackError, DB.TableError) as e:
-        raise SystemExit(f"error: {e}") from e
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
     if not args.quiet:
         print(f"packed {index['num_records']} images into {len(index['shards'])} shards "
               f"in {pathlib.Path(args.out) / args.name}")

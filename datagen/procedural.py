@@ -41,6 +41,8 @@ from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
 
 DIAMETER_RANGE_MM = (20.0, 250.0)
 DEFAULT_MAX_FACES = 5000
+#: The fewest faces every part family fits in.
+MIN_MAX_FACES = 500
 
 # A symmetry: a 4x4 proper rigid transform (mm) in a part's construction frame.
 _Sym = np.ndarray
@@ -593,8 +595,9 @@ def generate_part(
         family = FAMILIES[int(rng.integers(len(FAMILIES)))]
     if family not in _FAMILIES:
         raise ValueError(f"unknown part family {family!r}; choose one of {FAMILIES}")
-    if max_faces < 500:
-        raise ValueError(f"max_faces={max_faces} is too small for every part family; use >= 500")
+    if max_faces < MIN_MAX_FACES:
+        raise ValueError(f"max_faces={max_faces} is too small for every part family; use >= "
+                         f"{MIN_MAX_FACES}")
     lo, hi = diameter_range
     if not 0 < lo < hi:
         raise ValueError(f"diameter_range {diameter_range} must satisfy 0 < low < high (mm)")

@@ -69,6 +69,11 @@ _MIXED = (("drop-plane", 0.3), ("drop-bin", 0.3), ("float", 0.15), ("pack-grid",
           ("pack-pile", 0.15))
 #: Amodal masks are computed on the image grown by this many image sizes on each side (BOP).
 CANVAS_MARGIN = 1.0
+#: Smallest image side, pixels.
+MIN_SIDE = 16
+#: Smallest useful path length of Mitsuba's path tracer (-1 is unbounded): 0 renders nothing and
+#: 1 only the light sources seen directly (objects black); 2 adds direct illumination.
+MIN_MAX_DEPTH = 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,7 +94,7 @@ class SceneConfig:
       closeup_probability: share of single views aimed at part of the scene (truncation).
       image_format: "jpg" (BOP PBR) or "png" for ``rgb/``.
       depth_scale: mm per unit of the 16-bit depth PNGs (0.1 -> up to 6.5 m, like BOP PBR).
-      max_depth: path length of the path tracer.
+      max_depth: path length of the path tracer: -1 (unbounded) or >= ``MIN_MAX_DEPTH``.
       texture_size: side of procedural textures, pixels.
       lights: (min, max) number of point / area lights besides the environment.
     """
@@ -113,8 +118,8 @@ class SceneConfig:
 
     def __post_init__(self):
         W, H = self.resolution
-        if W < 16 or H < 16:
-            raise ValueError(f"resolution must be at least 16x16, got {W}x{H}")
+        if W < MIN_SIDE or H < MIN_SIDE:
+            raise ValueError(f"resolution must be at least {MIN_SIDE}x{MIN_SIDE}, got {W}x{H}")
         if self.spp < 1 or self.views < 1 or self.images_per_scene < 1:
             raise ValueError(
                 f"spp, views and images per scene must be >= 1, got {self.spp}, {self.views}, "
@@ -133,6 +138,11 @@ class SceneConfig:
         for name in ("closeup_probability", "bin_probability", "instance_spread"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
+        if self.max_depth != -1 and self.max_depth < MIN_MAX_DEPTH:
+            raise ValueError(
+                f"max_depth must be -1 (unbounded) or >= {MIN_MAX_DEPTH}, got {self.max_depth}: "
+                "Mitsuba's path tracer renders nothing at 0 and only the light sources at 1"
+            )
         if not self.depth_scale > 0:
             raise ValueError(f"depth_scale must be > 0 mm per unit, got {self.depth_scale}")
 

@@ -31,6 +31,15 @@ def _tree(root: pathlib.Path) -> dict[str, bytes]:
             for p in sorted(root.rglob("*")) if p.is_file()}
 
 
+def _refused(capsys, argv) -> str:
+    """``generate.main(argv)`` exits with status 2 and ``error: ...``; returns stderr."""
+    with pytest.raises(SystemExit) as e:
+        generate.main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith("error: "), (e.value.code, err)
+    return err
+
+
 def _assert_same_tree(a, b):
     ta, tb = _tree(a), _tree(b)
     assert sorted(ta) == sorted(tb)
@@ -47,7 +56,8 @@ def reference(tmp_path_factory):
 
 def test_output_layout_and_manifest(reference):
     assert sorted(p.name for p in (reference / "train_pbr").iterdir()) == [
-        "000000", "000001", "000002", "manifest.json"]
+        generate.LOCK_FILE, "000000", "000001", "000002", "manifest.json"]
+    assert (reference / "train_pbr" / generate.LOCK_FILE).read_bytes() == b""  # released
     m = json.loads((reference / "train_pbr" / "manifest.json").read_text())
     assert m["status"] == "complete" and m["num_images"] == 3 and m["skipped_meshes"] == 0
     assert (m["seed"], m["shard"], m["num_shards"], m["split"]) == (3, 0, 1, "train")
@@ -92,10 +102,11 @@ def test_resume_after_a_kill_gives_the_same_bytes(reference, tmp_path, monkeypat
     _assert_same_tree(reference, out)
 
 
-def test_a_shard_is_independent_of_the_split(reference, tmp_path):
+def test_a_shard_is_independent_of_the_split(reference, tmp_path, capsys):
     out = tmp_path / "shard2"
     generate.main(ARGS + ["--out", str(out), "--shard", "2", "--num-shards", "3"])
-    assert sorted(p.name for p in (out / "train_pbr").iterdir()) == ["000002", "manifest.json"]
+    assert sorted(p.name for p in (out / "train_pbr").iterdir()) == [
+        generate.LOCK_FILE, "000002", "manifest.json"]
     _assert_same_tree(reference / "train_pbr" / "000002", out / "train_pbr" / "000002")
     for ply in (out / "models").glob("obj_*.ply"):
         assert ply.read_bytes() == (reference / "models" / ply.name).read_bytes()
@@ -103,10 +114,10 @@ def test_a_shard_is_independent_of_the_split(reference, tmp_path):
     assert [list(generate.shard_scene_ids(10, k, 3)) for k in range(3)] == [
         [0, 1, 2], [3, 4, 5], [6, 7, 8, 9]]
     # Two shards in one folder, or other arguments: refused with the fix named.
-    with pytest.raises(SystemExit, match="own --out"):
-        generate.main(ARGS + ["--out", str(out), "--shard", "1", "--num-shards", "3"])
-    with pytest.raises(SystemExit, match="different arguments"):
-        generate.main(ARGS[:-1] + ["4", "--out", str(out), "--shard", "2", "--num-shards", "3"])
+    assert "own --out" in _refused(
+        capsys, ARGS + ["--out", str(out), "--shard", "1", "--num-shards", "3"])
+    assert "different arguments" in _refused(
+        capsys, ARGS[:-1] + ["4", "--out", str(out), "--shard", "2", "--num-shards", "3"])
 
 
 def test_command_line_with_one_thread_gives_the_same_bytes(reference, tmp_path):
@@ -156,7 +167,7 @@ def test_held_out_meshes():
     assert generate.split_candidates(pool, "val", 0.0) == list(range(12))
 
 
-def test_train_and_val_splits_share_one_folder(tmp_path):
+def test_train_and_val_splits_share_one_folder(tmp_path, capsys):
     """Held-out meshes: a val run beside a train run (same seed and meshes) uses only val meshes,
     and both splits' models end up in the shared models/ and models_info.json."""
     out = tmp_path / "splits"
@@ -182,20 +193,19 @@ def test_train_and_val_splits_share_one_folder(tmp_path):
     (other / "train_pbr").mkdir(parents=True)
     (other / "train_pbr" / "manifest.json").write_bytes(
         (out / "train_pbr" / "manifest.json").read_bytes())
-    with pytest.raises(SystemExit, match="same --meshes and --seed"):
-        generate.main(base + ["--seed", "9", "--out", str(other), "--split", "val",
-                              "--num-scenes", "1"])
+    err = _refused(capsys, base + ["--seed", "9", "--out", str(other), "--split", "val",
+                                   "--num-scenes", "1"])
+    assert "--seed 9 differs from --seed 2" in err
 
 
-def test_cli_errors_name_the_fix(tmp_path):
-    with pytest.raises(SystemExit, match="procedural:N"):
-        generate.main(["--meshes", "procedural:x", "--out", str(tmp_path), "--num-scenes", "1"])
-    with pytest.raises(SystemExit, match="neither a folder"):
-        generate.main(["--meshes", str(tmp_path / "nope"), "--out", str(tmp_path),
-                       "--num-scenes", "1"])
-    with pytest.raises(SystemExit, match="--shard"):
-        generate.main(["--meshes", "procedural:2", "--out", str(tmp_path), "--num-scenes", "1",
-                       "--shard", "3", "--num-shards", "2"])
+def test_cli_errors_name_the_fix(tmp_path, capsys):
+    assert "procedural:N" in _refused(
+        capsys, ["--meshes", "procedural:x", "--out", str(tmp_path), "--num-scenes", "1"])
+    assert "neither a folder" in _refused(
+        capsys, ["--meshes", str(tmp_path / "nope"), "--out", str(tmp_path), "--num-scenes", "1"])
+    assert "--shard" in _refused(
+        capsys, ["--meshes", "procedural:2", "--out", str(tmp_path), "--num-scenes", "1",
+                 "--shard", "3", "--num-shards", "2"])
 
 
 def test_shared_bop_meshes(bop_models_dir, tmp_path):

@@ -177,18 +177,26 @@ def test_published_dataset_packs_beside_generated_scenes(generated, published, t
     assert {p.name: p.stat().st_mtime_ns for p in (out / "banks").iterdir()} == before
 
 
-def test_pack_errors_name_the_fix(generated, published, tmp_path):
-    with pytest.raises(SystemExit, match="dataset root"):
-        pack.main(["--scenes", str(generated), "--out", str(tmp_path / "a"), *BANK])
-    with pytest.raises(SystemExit, match="--models"):
-        pack.main(["--scenes", str(published / "train_pbr"), "--out", str(tmp_path / "b"),
-                   "--models", str(tmp_path), *BANK])
+def _refused(capsys, argv) -> str:
+    """``pack.main(argv)`` exits with status 2 and ``error: ...``; returns stderr."""
+    with pytest.raises(SystemExit) as e:
+        pack.main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith("error: "), (e.value.code, err)
+    return err
+
+
+def test_pack_errors_name_the_fix(generated, published, tmp_path, capsys):
+    assert "dataset root" in _refused(
+        capsys, ["--scenes", str(generated), "--out", str(tmp_path / "a"), *BANK])
+    assert "--models" in _refused(
+        capsys, ["--scenes", str(published / "train_pbr"), "--out", str(tmp_path / "b"),
+                 "--models", str(tmp_path), *BANK])
     broken = tmp_path / "broken" / "train_pbr"
     import shutil
 
     shutil.copytree(published / "train_pbr", broken)
     shutil.copytree(published / "models", broken.parent / "models")
     shutil.rmtree(broken / "000000" / "mask_visib")
-    with pytest.raises(SystemExit, match="calc_gt_masks"):
-        pack.main(["--scenes", str(broken), "--out", str(tmp_path / "c"), "--no-banks",
-                   "--quiet"])
+    assert "calc_gt_masks" in _refused(
+        capsys, ["--scenes", str(broken), "--out", str(tmp_path / "c"), "--no-banks", "--quiet"])
