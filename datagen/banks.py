@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import sys
 from collections.abc import Sequence
 
 from threept_jax.data import banks as B
@@ -113,16 +114,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> list[int]:
-    args = build_parser().parse_args(argv)
-    if args.size < 8 or args.num_templates < 1:
-        raise SystemExit("--size must be >= 8 and --num-templates >= 1")
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    for flag, value, least in (("--size", args.size, 8), ("--num-templates", args.num_templates, 1),
+                               ("--max-faces", args.max_faces, 4)):
+        if value < least:
+            parser.error(f"{flag} must be >= {least}, got {value}")  # exits 2
     try:
         done = build_banks(pathlib.Path(args.records), args.obj_ids, args.size,
                            args.num_templates, force=args.force, max_faces=args.max_faces,
                            image_format=args.image_format, backend=args.backend,
                            quiet=args.quiet)
     except TableError as e:
-        raise SystemExit(f"error: {e}") from e
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
     if not args.quiet:
         print(f"rendered {len(done)} banks")
     return done

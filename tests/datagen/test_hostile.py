@@ -18,7 +18,7 @@ import pytest
 import trimesh
 from fixtures.training import ROOT, SUBPROCESS_ENV
 
-from datagen import generate, pack
+from datagen import banks, generate, pack
 from datagen import scene as S
 
 # Seed 2's 8 parts hash to 0.06 0.11 0.13 0.15 0.22 0.31 0.39 0.92 (test_leak_is_real).
@@ -281,3 +281,21 @@ def test_a_rerun_removes_what_killed_runs_left(splits, tmp_path):
     assert _tree(out) == clean
     assert sorted(p.name for p in split.iterdir()) == [generate.LOCK_FILE, "000000",
                                                         "manifest.json"]
+
+
+@pytest.mark.parametrize("argv, flag", [(["--size", "4"], "--size"),
+                                        (["--num-templates", "0"], "--num-templates"),
+                                        (["--max-faces", "0"], "--max-faces")])
+def test_banks_cli_refuses_bad_numbers(tmp_path, capsys, argv, flag):
+    with pytest.raises(SystemExit) as e:
+        banks.main(["--records", str(tmp_path), *argv])
+    assert e.value.code == 2
+    assert f"error: {flag} must be >=" in capsys.readouterr().err
+
+
+def test_banks_cli_reports_a_missing_table_with_exit_2(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        banks.main(["--records", str(tmp_path), "--quiet"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "Traceback" not in err
