@@ -39,7 +39,8 @@ def test_default_bank_covers_half_the_hypothesis_separation():
     assert _covering_radius_deg(768, queries) > half
     assert ONBOARD_TEMPLATES <= BANK_TEMPLATES // 5
     cfg = DetectorConfig(variant="tiny/16", image_size=64, render_size=32)
-    assert Onboarder(Detector(cfg, rngs=nnx.Rngs(0)), cfg, "m@0").num_templates == 1024
+    ob = Onboarder(Detector(cfg, rngs=nnx.Rngs(0)), cfg, "m@0")
+    assert (ob.num_templates, ob.template_chunk) == (1024, 64)  # CPU blocks (module constants)
 
 
 def _box(extents, name):

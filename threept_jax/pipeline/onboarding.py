@@ -11,10 +11,11 @@ R c]`` (``banks.render_pose``). Images are the renderer's shaded ``rgb`` output 
 vertex colours or neutral grey under headlight Lambert shading; ``threept_jax.render``) on a
 black background.
 
-**Batching.** The JAX rasterizer's working set is (views per call) x (padded faces) setup rows;
-on CPU it is fastest when that fits in cache: 2.6 ms per 96x96 view of a 16k-face mesh at 4
-views per call against 5.4 ms at 64 (``bench/onboarding.py``), so :func:`render_chunk` sizes
-calls by the mesh's face bucket there; accelerators keep large calls.
+**Batching.** The JAX rasterizer's working set grows with (views per call) x (padded faces);
+on CPU large calls are slower per view, not faster: 96x96 renders of a 15.7k-face YCB-V model
+take 2.4 ms per view at 2 views per call against 4.3 ms at 64 (2-core CPU,
+``python bench/onboarding.py``). So :func:`render_chunk` sizes CPU calls by the mesh's face
+bucket (``CPU_FACE_VIEWS``); accelerators keep ``DEVICE_CHUNK`` views per call.
 
 Shapes: N rotations, h w render size.
 """
@@ -37,8 +38,8 @@ __all__ = ["BankRenderer", "object_camera", "render_bank", "render_chunk", "rend
 
 #: Face budget of the models that banks are rendered from (datagen and inference alike).
 BANK_MAX_FACES = 20000
-#: CPU: (views per rasterizer call) x (padded faces) kept near this, so a call's setup rows stay
-#: in cache (module docstring).
+#: CPU: (views per rasterizer call) x (padded faces) kept near this (module docstring; 16k to
+#: 64k measured fastest for 1.5k- and 16k-face buckets).
 CPU_FACE_VIEWS = 32768
 #: Views per rasterizer call on accelerators and for the Mitsuba backend.
 DEVICE_CHUNK = 64
