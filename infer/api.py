@@ -27,9 +27,8 @@ import numpy as np
 from infer.checkpoint import load_detector
 from infer.detect import SceneDetector
 from infer.masks import PoseRenderer
-from infer.onboarding import OnboardedObject, Onboarder
+from infer.onboarding import ONBOARD_TEMPLATES, OnboardedObject, Onboarder
 from infer.scene import Instances, find_instances
-from threept_jax.data.banks import BANK_TEMPLATES
 from threept_jax.data.bop import Camera
 from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.models.configs import DetectorConfig
@@ -82,7 +81,7 @@ class Models:
 
 
 def load(workdir, step: int | str = "best", *, cache_dir=DEFAULT_CACHE,
-         num_templates: int = BANK_TEMPLATES) -> Models:
+         num_templates: int = ONBOARD_TEMPLATES) -> Models:
     """Load a training run's detector (``step``: ``"best"``, ``"latest"`` or a number) and an
     onboarder whose cache lives under ``cache_dir/onboarding`` (None: no disk cache)."""
     model, cfg, step = load_detector(workdir, step)

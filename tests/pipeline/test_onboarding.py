@@ -14,8 +14,8 @@ import pytest
 import trimesh
 
 from threept_jax.geometry.grids import prior_view_rotations, super_fibonacci_rotations
-from threept_jax.pipeline.onboarding import object_camera, render_object_views
-from threept_jax.render import Mesh
+from threept_jax.pipeline.onboarding import object_camera, render_chunk, render_object_views
+from threept_jax.render import Mesh, Renderer
 
 HW = (48, 48)
 FACE_COLORS = np.array(
@@ -121,3 +121,22 @@ def test_bad_rotations_raise():
         render_object_views(mesh, np.eye(3), HW)
     with pytest.raises(ValueError, match="chunk"):
         render_object_views(mesh, np.eye(3)[None], HW, chunk=0)
+
+
+def test_default_chunk_follows_the_face_bucket_and_matches_single_views():
+    """On CPU a call renders CPU_FACE_VIEWS // padded faces views (hand-derived for a 5120-face
+    sphere: bucket 6144, 32768 // 6144 = 5); those batched renders, the last call padded, equal
+    the views rendered one per call."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=30.0)
+    mesh = Mesh(sphere.vertices, sphere.faces, sphere.vertex_normals,
+                colors=np.abs(sphere.vertex_normals), name="sphere")
+    renderer = Renderer(mesh)
+    assert renderer.mesh.num_faces_padded == 6144
+    assert render_chunk(renderer) == 5
+    assert render_chunk(Renderer(_box()[0])) == 64  # 256 faces: capped
+    R = super_fibonacci_rotations(7)
+    sph = (np.zeros(3), 30.0)
+    batched = render_object_views(renderer, R, HW, sphere=sph)
+    single = render_object_views(renderer, R, HW, sphere=sph, chunk=1)
+    assert batched.any()
+    assert np.abs(batched.astype(int) - single).max() <= 1

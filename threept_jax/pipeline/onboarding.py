@@ -11,6 +11,12 @@ R c]`` (``banks.render_pose``). Images are the renderer's shaded ``rgb`` output 
 vertex colours or neutral grey under headlight Lambert shading; ``threept_jax.render``) on a
 black background.
 
+**Batching.** The JAX rasterizer's working set grows with (views per call) x (padded faces);
+on CPU large calls are slower per view, not faster: 96x96 renders of a 15.7k-face YCB-V model
+take 2.4 ms per view at 2 views per call against 4.3 ms at 64 (2-core CPU,
+``python bench/onboarding.py``). So :func:`render_chunk` sizes CPU calls by the mesh's face
+bucket (``CPU_FACE_VIEWS``); accelerators keep ``DEVICE_CHUNK`` views per call.
+
 Shapes: N rotations, h w render size.
 """
 
@@ -20,6 +26,7 @@ import pathlib
 import warnings
 from typing import Any
 
+import jax
 import numpy as np
 
 from threept_jax.data import banks
@@ -27,7 +34,24 @@ from threept_jax.geometry.grids import prior_view_rotations, super_fibonacci_rot
 from threept_jax.geometry.symmetry import Symmetries
 from threept_jax.render import Mesh, Renderer, load_mesh, prepare_mesh
 
-__all__ = ["object_camera", "render_bank", "render_object_views"]
+__all__ = ["BankRenderer", "object_camera", "render_bank", "render_chunk", "render_object_views"]
+
+#: Face budget of the models that banks are rendered from (datagen and inference alike).
+BANK_MAX_FACES = 20000
+#: CPU: (views per rasterizer call) x (padded faces) kept near this (module docstring; 16k to
+#: 64k measured fastest for 1.5k- and 16k-face buckets).
+CPU_FACE_VIEWS = 32768
+#: Views per rasterizer call on accelerators and for the Mitsuba backend.
+DEVICE_CHUNK = 64
+
+
+def render_chunk(renderer: Renderer) -> int:
+    """Views per render call for ``renderer``: ``CPU_FACE_VIEWS`` // padded faces (1..64) for
+    the JAX backend on CPU, ``DEVICE_CHUNK`` otherwise. Depends only on the face bucket, so it
+    adds no compilation."""
+    if renderer.backend != "jax" or jax.default_backend() != "cpu":
+        return DEVICE_CHUNK
+    return max(1, min(DEVICE_CHUNK, CPU_FACE_VIEWS // renderer.mesh.num_faces_padded))
 
 
 def object_camera(
@@ -54,7 +78,7 @@ def render_object_views(
     backend: str = "jax",
     *,
     sphere: tuple[Any, float] | None = None,
-    chunk: int = 64,
+    chunk: int | None = None,
     ambient: float = 0.3,
 ) -> np.ndarray:
     """uint8 [N, h, w, 3] renders of ``mesh`` at R_cam_obj ``rotations`` [N, 3, 3].
@@ -67,9 +91,9 @@ def render_object_views(
       hw: (h, w) render size.
       backend: "jax" or "mitsuba" (ignored when a Renderer is given).
       sphere: (centre [3], radius) of the bank camera (see :func:`object_camera`).
-      chunk: views rendered per call; every call renders exactly ``chunk`` views (the last
-        one padded), so the JAX backend compiles once per mesh bucket and image size whatever
-        N is, and memory stays bounded. Lower it for a handful of views.
+      chunk: views rendered per call (default :func:`render_chunk`); every call renders
+        exactly ``chunk`` views (the last one padded), so the JAX backend compiles once per
+        mesh bucket and image size whatever N is, and memory stays bounded.
       ambient: ambient term of the headlight shading.
 
     Background pixels are 0. Colours are ``round(255 * rgb)``.
@@ -77,10 +101,11 @@ def render_object_views(
     R = np.asarray(rotations, np.float64)
     if R.ndim != 3 or R.shape[1:] != (3, 3):
         raise ValueError(f"rotations must be [N, 3, 3], got {R.shape}")
-    if chunk < 1:
+    if chunk is not None and chunk < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
     h, w = int(hw[0]), int(hw[1])
     renderer = mesh if isinstance(mesh, Renderer) else Renderer(mesh, backend)
+    chunk = render_chunk(renderer) if chunk is None else int(chunk)
     if sphere is None:
         sphere = banks.bounding_sphere(np.asarray(_mesh_of(renderer, mesh).vertices, np.float64))
     K, distance = banks.render_camera((h, w), float(sphere[1]))
@@ -111,6 +136,30 @@ def _mesh_of(renderer: Renderer, given: Any) -> Mesh:
     )
 
 
+class BankRenderer:
+    """The bank camera's renders of one model (mm), at any rotations: the images of
+    :func:`render_bank`, for callers that render in blocks (inference onboarding).
+
+    The camera is fixed by the full model's bounding sphere; rendering uses a copy decimated to
+    ``max_faces`` (None: the full model).
+    """
+
+    def __init__(self, mesh: Mesh, size: int = banks.BANK_SIZE, *,
+                 max_faces: int | None = BANK_MAX_FACES, backend: str = "jax",
+                 chunk: int | None = None):
+        self.size = int(size)
+        self.sphere = banks.bounding_sphere(np.asarray(mesh.vertices, np.float64))
+        work = mesh if max_faces is None or mesh.num_faces <= max_faces else prepare_mesh(
+            mesh, max_faces=max_faces)
+        self.renderer = Renderer(work, backend)
+        self.chunk = render_chunk(self.renderer) if chunk is None else int(chunk)
+
+    def __call__(self, rotations: Any) -> np.ndarray:
+        """uint8 [N, size, size, 3] renders at R_cam_obj ``rotations`` [N, 3, 3]."""
+        return render_object_views(self.renderer, rotations, (self.size, self.size),
+                                   sphere=self.sphere, chunk=self.chunk)
+
+
 def render_bank(
     mesh: Mesh | str | pathlib.Path,
     obj_id: int,
@@ -119,8 +168,8 @@ def render_bank(
     size: int = banks.BANK_SIZE,
     num_templates: int = banks.BANK_TEMPLATES,
     *,
-    max_faces: int | None = 20000,
-    chunk: int = 64,
+    max_faces: int | None = BANK_MAX_FACES,
+    chunk: int | None = None,
     backend: str = "jax",
     on_views=None,
 ) -> banks.RenderBank:
@@ -128,31 +177,26 @@ def render_bank(
     the 12 prior views and ``num_templates`` super-Fibonacci templates, ``size`` x ``size``.
 
     Datagen stores banks for training (``python -m datagen.banks``); inference onboarding
-    renders the same images for unseen objects. ``on_views(n)`` reports progress.
+    renders the same images for unseen objects (:class:`BankRenderer`). ``on_views(n)``
+    reports progress; ``chunk``: views per render call (default :func:`render_chunk`).
     """
     if not isinstance(mesh, Mesh):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # duplicated BOP faces, open meshes: noise here
             mesh = load_mesh(mesh, models_info=None)
-    centre, radius = banks.bounding_sphere(np.asarray(mesh.vertices, np.float64))
-    work = mesh if max_faces is None or mesh.num_faces <= max_faces else prepare_mesh(
-        mesh, max_faces=max_faces)
-    renderer = Renderer(work, backend)
+    render = BankRenderer(mesh, size, max_faces=max_faces, backend=backend, chunk=chunk)
     prior_R = prior_view_rotations()
     tmpl_R = super_fibonacci_rotations(num_templates)
-    # Priors and templates in one sequence of equal chunks: one compiled renderer per mesh
-    # bucket, progress reported every few chunks.
     all_R = np.concatenate([prior_R, tmpl_R])
-    chunk = max(1, min(chunk, len(all_R)))
     parts = []
-    step = 8 * chunk
+    step = 512  # progress every few hundred views
     for start in range(0, len(all_R), step):
         R = all_R[start : start + step]
-        parts.append(render_object_views(renderer, R, (size, size), sphere=(centre, radius),
-                                         chunk=chunk))
+        parts.append(render(R))
         if on_views is not None:
             on_views(len(R))
     images = np.concatenate(parts)
+    centre, radius = render.sphere
     return banks.RenderBank(
         obj_id=int(obj_id),
         prior_rgb=images[: len(prior_R)],
