@@ -23,7 +23,9 @@ and runs it to ``config.total_steps``:
   :class:`StepCache` owned by the trainer (or handed to several trainers).
 * **Checkpoints** (:mod:`train.checkpointing`, layout :mod:`threept_jax.data.run_dir`) every
   ``checkpoint.every_steps``, at the end and on SIGTERM (then the run stops), with the grain
-  iterator; the run resumes from the latest one in ``workdir``.
+  iterator; the run resumes from the latest one in ``workdir``, refusing a config that changes
+  what the run computes (:func:`train.run_config.check_resume_config`; every change of a
+  resume is kept in ``config_history.json``).
 * **Evaluation** (:mod:`train.eval_detector`) every ``eval.every_steps`` and at the end.
 * **Logs** (:mod:`train.logging_utils`): loss terms, learning rate, grad/param norms,
   examples/s to TensorBoard (``<workdir>/tb``) and the console, and a progress bar.

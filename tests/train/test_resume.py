@@ -77,6 +77,14 @@ def test_out_of_range_values_are_refused_naming_the_key():
     assert "\n" not in str(e.value)
 
 
+def test_eval_batch_the_devices_do_not_divide_is_refused_before_training(toy, tmp_path):
+    """The evaluator is built at the first evaluation; its batch is checked up front."""
+    cfg = small_config(toy, **{"eval.every_steps": 1, "eval.batch_size": 3, "mesh.data": 2})
+    with pytest.raises(ValueError, match="eval.batch_size=3 is not divisible by the 2 devices"):
+        td.DetectorTrainer(cfg, tmp_path / "w", devices=jax.devices()[:2], step_cache=STEPS)
+    assert not (tmp_path / "w").exists()
+
+
 # --------------------------------------------------------------------------- config changes
 
 
