@@ -7,7 +7,12 @@ run resumes from the latest checkpoint in ``--workdir`` when there is one. On se
 start the same command on every host (Slurm, Open MPI, or ``JAX_COORDINATOR_ADDRESS``,
 ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID``): the launcher calls ``jax.distributed.initialize()``
 first (``--config.distributed``; README "Training on a cluster"). SIGTERM saves a checkpoint
-at the next step and exits 0.
+at the next step and exits 0. A resume refuses a config that changes the run's seed, batch
+size, data or optimisation (``--allow_config_change`` allows it and keeps the old config in
+``config_history.json``) and any change of the model.
+
+Bad input (an unknown key, an out-of-range value, a batch the devices do not divide, missing
+data, another run's workdir) stops the launcher with exit status 2 and one ``error:`` line.
 """
 
 from __future__ import annotations
@@ -23,6 +28,12 @@ _CONFIG = config_flags.DEFINE_config_file(
     "config", None, "Training config file and argument, e.g. train/configs/detector.py:tiny.",
     lock_config=True)
 _WORKDIR = flags.DEFINE_string("workdir", None, "Run folder: checkpoints, TensorBoard logs.")
+_ALLOW_CHANGE = flags.DEFINE_bool(
+    "allow_config_change", False,
+    "Resume even when the config changes keys the run's config.json fixes (seed, batch_size, "
+    "data_dir, data/loss/optim settings, evaluation; train/run_config.py RESUME_FREE_KEYS "
+    "lists the keys a resume may change without it). The old config is kept in "
+    "config_history.json.")
 flags.mark_flags_as_required(["config", "workdir"])
 
 #: ``--config.a.b=v`` or ``--config.a.b v``: the override's key path.
@@ -30,7 +41,7 @@ _OVERRIDE = re.compile(r"^--?config\.([^=\s]+)")
 
 
 def _fail(message: str) -> NoReturn:
-    sys.stderr.write(f"launch.py: {message}\n")
+    sys.stderr.write(f"error: {message}\n")
     sys.exit(2)
 
 
@@ -83,7 +94,14 @@ def main(argv) -> None:
 
     print(f"process {jax.process_index()}/{jax.process_count()}, devices: {jax.devices()}",
           flush=True)
-    summary = trainer_detector.train(config, _WORKDIR.value)
+    try:
+        trainer = trainer_detector.DetectorTrainer(config, _WORKDIR.value,
+                                                   allow_config_change=_ALLOW_CHANGE.value)
+    except (ValueError, FileNotFoundError, KeyError) as e:
+        # Everything the trainer checks before it trains: the config against the devices, the
+        # data and the workdir's run.
+        _fail(e.args[0] if isinstance(e, KeyError) and e.args else str(e))
+    summary = trainer.run()
     if summary["preempted"] is not None:
         print(f"stopped by SIGTERM after step {summary['preempted']} (checkpoint saved)",
               flush=True)

@@ -3,6 +3,13 @@
 Only process 0 writes (event files in ``<workdir>/tb``); every process keeps its bar off but
 still averages metrics, so multi-host runs print once. Scalars are averaged over the steps
 since the last write.
+
+A run resumed from step S may find events of steps after S in ``tb/``: its previous process
+logged them before dying and the resumed run logs those steps again. The resumed run's event
+file therefore starts with a ``SessionLog.START`` at step S + 1 (tensorboardX ``purge_step``),
+on which TensorBoard drops every earlier-read event at step S + 1 or later, so each step shows
+once. Its file name carries ``.resumed<S>`` so that it sorts after the dead run's file even
+when both were opened within the same second (tensorboardX names files by the second).
 """
 
 from __future__ import annotations
@@ -33,7 +40,9 @@ class MetricLogger:
         if enabled:
             from tensorboardX import SummaryWriter
 
-            self.writer = SummaryWriter(str(pathlib.Path(workdir) / TB_DIR))
+            resume = {"purge_step": start_step + 1,
+                      "filename_suffix": f".resumed{start_step}"} if start_step else {}
+            self.writer = SummaryWriter(str(pathlib.Path(workdir) / TB_DIR), **resume)
             if progress_bar:
                 self.bar = tqdm.tqdm(total=total_steps, initial=start_step, unit="step",
                                      dynamic_ncols=True, desc="train")

@@ -18,14 +18,19 @@ top level                     :class:`RunSettings`
 ============================  =================================================================
 
 :func:`check_config` refuses any key outside this schema, in a config file or on the command
-line, with one line naming the key and the valid ones. The trainer (``trainer_detector``) and
+line, with one line naming the key and the valid ones, and out-of-range numbers of the sections
+whose dataclasses do not check themselves (:data:`VALUE_RULES`). :func:`check_resume_config`
+decides which keys a resumed run may change (:data:`RESUME_FREE_KEYS`). The trainer (``trainer_detector``) and
 the evaluator (``eval_detector``) build their configs here, so neither imports the other.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
 import typing
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import jax
@@ -34,6 +39,7 @@ import ml_collections
 import numpy as np
 
 from threept_jax.data.detector_input import ExampleConfig, PhotometricConfig
+from threept_jax.data.run_dir import COMPUTE_ONLY_FIELDS, CONFIG_FILE, CONFIG_HISTORY_FILE
 from threept_jax.losses.detection import DetectorLossConfig
 from threept_jax.models.configs import DetectorConfig
 
@@ -139,7 +145,7 @@ SECTIONS: dict[str, tuple[type, ...]] = {
 
 
 class ConfigError(ValueError):
-    """A config key outside the schema (the message is one line)."""
+    """A config key outside the schema or a value out of range (the message is one line)."""
 
 
 def _fields(section: str) -> list[dataclasses.Field]:
@@ -181,7 +187,8 @@ def check_key(path: str) -> None:
 
 
 def check_config(config: ml_collections.ConfigDict) -> None:
-    """Raise :class:`ConfigError` on the first key of ``config`` outside the schema."""
+    """Raise :class:`ConfigError` on the first key of ``config`` outside the schema, then on
+    the values that break :data:`VALUE_RULES` (all of them, in one line)."""
 
     def walk(node, prefix):
         for key in sorted(node.keys()):
@@ -194,6 +201,156 @@ def check_config(config: ml_collections.ConfigDict) -> None:
                 walk(node[key], path + ".")
 
     walk(config, "")
+    check_values(config)
+
+
+# --------------------------------------------------------------------------- values
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+
+def _is_num(v: Any) -> bool:
+    return (_is_int(v) or isinstance(v, (float, np.floating))) and math.isfinite(v)
+
+
+def _int_at_least(lo: int, *, or_minus_one: bool = False) -> tuple[Callable[[Any], bool], str]:
+    what = f"an integer >= {lo}" + (" (or -1)" if or_minus_one else "")
+    return (lambda v: _is_int(v) and (v >= lo or (or_minus_one and v == -1))), what
+
+
+def _number_in(lo: float, hi: float = math.inf, *, lo_open: bool, hi_open: bool = True
+               ) -> tuple[Callable[[Any], bool], str]:
+    what = (f"a number in {'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
+            if math.isfinite(hi) else f"a number {'>' if lo_open else '>='} {lo}")
+    return (lambda v: _is_num(v) and (v > lo if lo_open else v >= lo)
+            and (v < hi if hi_open else v <= hi)), what
+
+
+#: key -> (check, what it must be), for the keys whose dataclass does not check itself (the
+#: model, loss and example sections raise from their own ``__post_init__`` when the trainer
+#: builds them).
+VALUE_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "total_steps": _int_at_least(1),
+    "batch_size": _int_at_least(1),
+    "seed": _int_at_least(0),
+    "log_every": _int_at_least(1),
+    "distributed": (lambda v: isinstance(v, bool) or isinstance(v, str)
+                    and v.lower() in ("auto", "true", "false"), "'auto', True or False"),
+    "data.num_train_templates": _int_at_least(1),
+    "data.num_train_records": _int_at_least(1, or_minus_one=True),
+    "data.num_workers": _int_at_least(0),
+    "data.worker_buffer_size": _int_at_least(1),
+    "data.read_threads": _int_at_least(0),
+    "data.prefetch_buffer_size": _int_at_least(0),
+    "optim.learning_rate": _number_in(0, lo_open=True),
+    "optim.warmup_steps": _int_at_least(0),
+    "optim.end_lr_factor": _number_in(0, lo_open=False),
+    "optim.b1": _number_in(0, 1, lo_open=False),
+    "optim.b2": _number_in(0, 1, lo_open=False),
+    "optim.eps": _number_in(0, lo_open=False),
+    "optim.weight_decay": _number_in(0, lo_open=False),
+    "optim.grad_clip_norm": _number_in(0, lo_open=True),
+    "eval.every_steps": _int_at_least(0),
+    "eval.num_examples": _int_at_least(1),
+    "eval.batch_size": _int_at_least(1),
+    "eval.num_templates": _int_at_least(1, or_minus_one=True),
+    "eval.template_chunk": _int_at_least(1),
+    "eval.max_detections": _int_at_least(1),
+    "eval.nms_iou": _number_in(0, 1, lo_open=True, hi_open=False),
+    "eval.orientation_threshold_deg": _number_in(0, 180, lo_open=True, hi_open=False),
+    "eval.match_iou": _number_in(0, 1, lo_open=True, hi_open=False),
+    "eval.seed": _int_at_least(0),
+    "checkpoint.every_steps": _int_at_least(0),
+    "checkpoint.max_to_keep": _int_at_least(1),
+    "checkpoint.best_mode": (lambda v: v in ("max", "min"), "'max' or 'min'"),
+    "mesh.data": _int_at_least(1, or_minus_one=True),
+    "mesh.fsdp": _int_at_least(1, or_minus_one=True),
+    "mesh.fsdp_min_size": _int_at_least(0),
+}
+
+
+def _get(config: Mapping[str, Any], path: str) -> Any:
+    node = config
+    for part in path.split("."):
+        node = node[part]
+    return node
+
+
+def check_values(config: ml_collections.ConfigDict) -> None:
+    """Raise :class:`ConfigError` naming every value of ``config`` that breaks
+    :data:`VALUE_RULES` (keys the config lacks keep their valid defaults and are skipped)."""
+    bad = []
+    for path, (ok, what) in VALUE_RULES.items():
+        try:
+            value = _get(config, path)
+        except (KeyError, AttributeError):
+            continue
+        if not ok(value):
+            bad.append(f"{path}={value!r} (must be {what})")
+    if bad:
+        raise ConfigError(f"invalid config value{'s' if len(bad) > 1 else ''}: "
+                          + "; ".join(bad))
+
+
+# --------------------------------------------------------------------------- resuming
+
+#: Keys a resumed run may change freely: how long it runs and how it is logged, checkpointed,
+#: laid out on the devices and read (without changing the batches), not what it computes.
+#: ``total_steps`` extends (or shortens) a run; the cosine schedule is then stretched over the
+#: new length from the resumed step on. Every other key (seed, batch_size, data_dir, the data,
+#: loss and optimizer settings, the evaluation that ranks checkpoints, the best metric) is
+#: refused by :func:`check_resume_config` unless the change is explicitly allowed; model
+#: fields other than :data:`COMPUTE_ONLY_FIELDS` are refused always
+#: (``RunDir.check_same_model``). ``data.num_workers`` is refused: the saved data iterator's
+#: state depends on the worker count.
+RESUME_FREE_KEYS = frozenset({
+    "total_steps", "log_every", "progress_bar", "distributed",
+    "checkpoint.every_steps", "checkpoint.max_to_keep", "checkpoint.async_save",
+    "eval.every_steps", "eval.batch_size", "eval.template_chunk",
+    "data.worker_buffer_size", "data.read_threads", "data.prefetch_buffer_size",
+    "mesh.data", "mesh.fsdp", "mesh.fsdp_min_size",
+    *(f"model.{k}" for k in COMPUTE_ONLY_FIELDS),
+})
+
+#: The trainer's option that allows the refused changes (``train/launch.py`` flag).
+ALLOW_CHANGE_FLAG = "--allow_config_change"
+
+
+def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, Mapping):
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def check_resume_config(saved: Mapping[str, Any], config: ml_collections.ConfigDict, *,
+                        allow_change: bool, config_file: Any = CONFIG_FILE
+                        ) -> tuple[dict[str, tuple[Any, Any]], list[str]]:
+    """``(changes, refused)``: the keys whose value in ``config`` differs from the run's saved
+    config.json (``saved``, a plain dict), as ``key -> (old, new)`` in their JSON form, and
+    those of them outside :data:`RESUME_FREE_KEYS`. Keys the saved config lacks (a run from
+    before they existed) appear with old ``None`` and are never refused.
+
+    Raises :class:`ConfigError` naming each refused key with its old and new values and
+    :data:`ALLOW_CHANGE_FLAG`, unless ``allow_change``.
+    """
+    old = _flatten(saved)
+    new = _flatten(json.loads(config.to_json_best_effort()))
+    changes = {k: (old.get(k), new.get(k)) for k in sorted(set(old) | set(new))
+               if old.get(k) != new.get(k)}
+    refused = [k for k in changes if k in old and k not in RESUME_FREE_KEYS]
+    if refused and not allow_change:
+        listed = ", ".join(f"{k}={changes[k][0]!r} (now {changes[k][1]!r})" for k in refused)
+        raise ConfigError(
+            f"the config differs from the resumed run's {config_file} in {listed}; resume with "
+            f"the run's own values, pass {ALLOW_CHANGE_FLAG} to resume with the new ones (the "
+            f"old config is kept in {CONFIG_HISTORY_FILE}), or pass a fresh --workdir")
+    return changes, refused
 
 
 def _config_value(value: Any, hint: Any) -> Any:

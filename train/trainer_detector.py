@@ -23,7 +23,9 @@ and runs it to ``config.total_steps``:
   :class:`StepCache` owned by the trainer (or handed to several trainers).
 * **Checkpoints** (:mod:`train.checkpointing`, layout :mod:`threept_jax.data.run_dir`) every
   ``checkpoint.every_steps``, at the end and on SIGTERM (then the run stops), with the grain
-  iterator; the run resumes from the latest one in ``workdir``.
+  iterator; the run resumes from the latest one in ``workdir``, refusing a config that changes
+  what the run computes (:func:`train.run_config.check_resume_config`; every change of a
+  resume is kept in ``config_history.json``).
 * **Evaluation** (:mod:`train.eval_detector`) every ``eval.every_steps`` and at the end.
 * **Logs** (:mod:`train.logging_utils`): loss terms, learning rate, grad/param norms,
   examples/s to TensorBoard (``<workdir>/tb``) and the console, and a progress bar.
@@ -62,6 +64,7 @@ from train.logging_utils import MetricLogger
 from train.run_config import (
     OptimConfig,
     check_config,
+    check_resume_config,
     example_config,
     loss_config,
     model_config,
@@ -292,7 +295,10 @@ class DetectorTrainer:
     """State, data, step, checkpoints and logs of one 3PT-D run (module docstring)."""
 
     def __init__(self, config: ml_collections.ConfigDict, workdir, *, devices=None,
-                 step_cache: StepCache | None = None):
+                 step_cache: StepCache | None = None, allow_config_change: bool = False):
+        """``allow_config_change``: resume even when ``config`` changes keys of the run's
+        config.json that a resume must keep (:func:`train.run_config.check_resume_config`);
+        every change of a resume is recorded in the run's config history either way."""
         check_config(config)
         self.config = config
         self.workdir = pathlib.Path(workdir)
@@ -301,19 +307,28 @@ class DetectorTrainer:
             raise ValueError(
                 "config.data_dir is empty: pass --config.data_dir=<records folder> (written by "
                 "`python -m datagen.pack`; it holds train/, val/, objects.json and banks/)")
-        if config.total_steps < 1:
-            raise ValueError(f"total_steps must be >= 1, got {config.total_steps}")
         self.mesh = sharding.make_mesh(config.mesh.data, config.mesh.fsdp, devices)
         self.local_batch = sharding.check_batch_size(config.batch_size, self.mesh)
+        if config.eval.every_steps > 0:
+            # The evaluator is built at the first evaluation: refuse its batch now, not then.
+            sharding.check_batch_size(config.eval.batch_size, self.mesh, "eval.batch_size")
         self.table = load_object_table(config.data_dir)
         validate_data(config.data_dir, self.table, config.data.num_train_templates)
 
         self.model_cfg = model_config(config)
         self.loss_cfg = loss_config(config)
-        if self.run_dir.checkpoint_steps():
+        saved_steps = self.run_dir.checkpoint_steps()
+        changes, forced = {}, []
+        if saved_steps:
             # Before Orbax meets parameters of other shapes.
             self.run_dir.check_same_model(self.model_cfg)
+            saved = self.run_dir.read_config()
+            changes, forced = check_resume_config(saved, config,
+                                                  allow_change=allow_config_change,
+                                                  config_file=self.run_dir.config_file)
         if jax.process_index() == 0:
+            if changes:
+                self.run_dir.record_config_change(saved_steps[-1], changes, saved, forced=forced)
             self.run_dir.write_config(config.to_json_best_effort(indent=2, sort_keys=True))
             self.run_dir.write_model_config(self.model_cfg)
         self.step_cache = StepCache() if step_cache is None else step_cache
@@ -477,6 +492,8 @@ class DetectorTrainer:
 
 
 def train(config: ml_collections.ConfigDict, workdir, hooks: Iterable[Hook] = (),
-          devices=None, step_cache: StepCache | None = None) -> dict[str, Any]:
+          devices=None, step_cache: StepCache | None = None,
+          allow_config_change: bool = False) -> dict[str, Any]:
     """Build a :class:`DetectorTrainer` from ``config`` (resuming from ``workdir``) and run it."""
-    return DetectorTrainer(config, workdir, devices=devices, step_cache=step_cache).run(hooks)
+    return DetectorTrainer(config, workdir, devices=devices, step_cache=step_cache,
+                           allow_config_change=allow_config_change).run(hooks)

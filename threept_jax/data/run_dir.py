@@ -5,6 +5,10 @@ other, both import this module::
 
     <workdir>/
       config.json            the whole run config (ml_collections JSON), CONFIG_FILE
+      config_history.json    the configs a resume replaced, CONFIG_HISTORY_FILE: a JSON list of
+                             {"step", "time", "forced" (keys changed with the trainer's
+                             permission), "changes": {key: {"old", "new"}}, "previous_config"},
+                             oldest first (written only when a resume changed the config)
       detector.json          the DetectorConfig (``DetectorConfig.to_dict()``), MODEL_FILE:
                              inference rebuilds the model from it
       checkpoints/<step>/    one Orbax ``CheckpointManager`` step, CHECKPOINT_DIR, holding the
@@ -23,15 +27,17 @@ The best checkpoint is the one with the best ``checkpoint.best_metric`` of confi
 
 from __future__ import annotations
 
+import datetime
 import json
 import pathlib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from threept_jax.data.files import atomic_write_bytes, atomic_write_json
 from threept_jax.models.configs import DetectorConfig
 
 CONFIG_FILE = "config.json"
+CONFIG_HISTORY_FILE = "config_history.json"
 MODEL_FILE = "detector.json"
 CHECKPOINT_DIR = "checkpoints"
 TB_DIR = "tb"
@@ -55,6 +61,10 @@ class RunDir:
         return self.path / CONFIG_FILE
 
     @property
+    def config_history_file(self) -> pathlib.Path:
+        return self.path / CONFIG_HISTORY_FILE
+
+    @property
     def model_file(self) -> pathlib.Path:
         return self.path / MODEL_FILE
 
@@ -71,6 +81,28 @@ class RunDir:
     def write_config(self, config_json: str) -> None:
         """``config.json``: the whole run config as JSON text (``to_json_best_effort``)."""
         atomic_write_bytes(self.config_file, config_json.encode())
+
+    def read_config_history(self) -> list[dict[str, Any]]:
+        """The entries of ``config_history.json``, oldest first ([] when there is none)."""
+        f = self.config_history_file
+        return json.loads(f.read_text()) if f.exists() else []
+
+    def record_config_change(self, step: int, changes: Mapping[str, tuple[Any, Any]],
+                             previous_config: Mapping[str, Any], *,
+                             forced: Sequence[str] = ()) -> None:
+        """Append an entry to ``config_history.json`` before a resume at ``step`` replaces
+        config.json: ``changes`` maps each changed key (``"optim.learning_rate"``) to its
+        (old, new) value, ``previous_config`` is the replaced config.json, ``forced`` names
+        the changed keys that needed the trainer's explicit permission."""
+        entry = {
+            "step": int(step),
+            "time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "forced": sorted(forced),
+            "changes": {k: {"old": old, "new": new} for k, (old, new) in changes.items()},
+            "previous_config": dict(previous_config),
+        }
+        atomic_write_json(self.config_history_file, [*self.read_config_history(), entry],
+                          indent=2)
 
     def write_model_config(self, model_cfg: DetectorConfig) -> None:
         """``detector.json``: the model config inference rebuilds the detector from."""
