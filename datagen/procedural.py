@@ -38,6 +38,7 @@ import trimesh
 
 from threept_jax.geometry.diameter import mesh_diameter
 from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
+from threept_jax.render.mesh import MAX_MESH_FACES
 
 DIAMETER_RANGE_MM = (20.0, 250.0)
 DEFAULT_MAX_FACES = 5000
@@ -595,6 +596,12 @@ def generate_part(
         raise ValueError(f"unknown part family {family!r}; choose one of {FAMILIES}")
     if max_faces < 500:
         raise ValueError(f"max_faces={max_faces} is too small for every part family; use >= 500")
+    if max_faces > MAX_MESH_FACES:
+        raise ValueError(
+            f"max_faces={max_faces} (--procedural-max-faces) is above {MAX_MESH_FACES}, more "
+            "than a loader takes in bounded memory; lower it (the default is "
+            f"{DEFAULT_MAX_FACES})"
+        )
     lo, hi = diameter_range
     if not 0 < lo < hi:
         raise ValueError(f"diameter_range {diameter_range} must satisfy 0 < low < high (mm)")
