@@ -62,7 +62,7 @@ def main() -> None:
                                       "PATH": "/usr/bin:/bin"},
                                  capture_output=True, text=True, check=True)
             faces, dt, peak, extra = out.stdout.split()
-            print(f"{name:>6} {int(faces):>9} {float(dt):>8.2f} {float(dt) / ref:>8.0f} "
+            print(f"{name:>6} {int(faces):>9} {float(dt):>8.2f} {float(dt) / ref:>8.2f} "
                   f"{float(peak):>12.0f} {float(extra):>17.0f}")
 
 

@@ -12,9 +12,9 @@ point set in 1281 fixed directions (and their opposites); only vertices whose bo
 best pair found so far can end a diametral pair, and those are compared exactly. For every
 mesh whose candidates number at most ``EXACT_MAX_CANDIDATES`` (every BOP model) the result
 is exact; for larger round shapes (a finely tessellated sphere: every vertex has an antipode)
-it is the best pair found, at most ``DIAMETER_RTOL`` (0.12 %) below the true diameter.
-Time and memory are linear in the vertex count (about 1 s per million vertices and direction
-pass, memory a few times the vertex array).
+it is the best pair found, at most ``DIAMETER_RTOL`` (0.114 %) below the true diameter.
+Time and memory are linear in the vertex count: an ordinary 40k-vertex BOP model takes about
+0.1 s, a 1M-vertex sphere (the worst case) about 4 s; memory is a few times the vertex array.
 """
 
 from __future__ import annotations
