@@ -129,7 +129,9 @@ def build_pool(
     if n_proc:
         rng = np.random.default_rng(np.random.SeedSequence([seed, _PROCEDURAL_STREAM]))
         parts = P.generate_parts(rng, n_proc, max_faces=procedural_max_faces)
-    return M.build_pool([M.MeshFolder(f, units=units) for f in folders], parts)
+    # A mesh in the wrong units is skipped with a message that names this CLI's flag.
+    return M.build_pool([M.MeshFolder(f, units=units) for f in folders], parts,
+                        units_option="--mesh-units {}")
 
 
 def mesh_split(name: str, val_fraction: float) -> str:

@@ -37,8 +37,10 @@ import numpy as np
 import trimesh
 
 from datagen.procedural import Part
-from threept_jax.geometry.diameter import mesh_diameter
+from threept_jax.data.ply import check_ply_counts
+from threept_jax.geometry.diameter import MeshUnitsError, check_units, mesh_diameter
 from threept_jax.geometry.symmetry import Symmetries
+from threept_jax.render.mesh import MAX_MESH_FACES, check_mesh_arrays
 
 MESH_EXTENSIONS = (".ply", ".obj", ".glb", ".gltf", ".stl", ".off")
 UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
@@ -121,41 +123,30 @@ class LoadedMesh:
 def load_mesh_file(path: str | pathlib.Path) -> trimesh.Trimesh:
     """Read one mesh file as a single triangle mesh in file units (the pool's only reader).
 
-    Multi-part files (GLB scenes, OBJ groups) are merged with their node transforms.
+    Multi-part files (GLB scenes, OBJ groups) are merged with their node transforms. A file
+    that cannot be read, is empty, has NaN/inf vertices, face indices out of range or more
+    than ``MAX_MESH_FACES`` faces raises ValueError naming the file and the problem.
     """
-    mesh = trimesh.load(str(path), force="mesh", process=False)
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise ValueError(f"not a triangle mesh (got {type(mesh).__name__})")
+    try:
+        mesh = trimesh.load(str(path), force="mesh", process=False)
+        if not isinstance(mesh, trimesh.Trimesh):
+            raise ValueError(f"no triangle mesh in it (got {type(mesh).__name__})")
+        v = np.asarray(mesh.vertices, np.float64).reshape(-1, 3)
+        f = np.asarray(mesh.faces, np.int64).reshape(-1, 3)
+    except Exception as e:  # trimesh and numpy raise anything on corrupt files
+        raise ValueError(
+            f"{path}: cannot read the mesh ({type(e).__name__}: {e}); the file is corrupt, "
+            "truncated or not a mesh"
+        ) from None
+    if str(path).lower().endswith(".ply"):
+        check_ply_counts(path, len(v), len(f))
+    check_mesh_arrays(v, f, path)
+    if len(f) > MAX_MESH_FACES:
+        raise ValueError(
+            f"{path}: {len(f)} faces, above the {MAX_MESH_FACES} the pool loads; decimate the "
+            "file before adding it (e.g. fast_simplification.simplify or MeshLab)"
+        )
     return mesh
-
-
-def _check_structure(mesh: trimesh.Trimesh) -> None:
-    """Raise ValueError unless the mesh has triangles with finite, in-range vertices."""
-    v = np.asarray(mesh.vertices)
-    f = np.asarray(mesh.faces)
-    if len(v) < 3 or len(f) == 0:
-        raise ValueError("no triangles (empty or truncated file)")
-    if not np.isfinite(v).all():
-        raise ValueError("non-finite vertex coordinates")
-    if f.min() < 0 or f.max() >= len(v):
-        raise ValueError("face indices out of range")
-
-
-def _check_size(mesh: trimesh.Trimesh, min_diameter: float, max_diameter: float) -> float:
-    """The mesh diameter (mm); ValueError when it says the units are wrong."""
-    d = mesh_diameter(np.asarray(mesh.vertices))
-    if d < min_diameter:
-        raise ValueError(
-            f"diameter {d:.4g} mm is below {min_diameter} mm: the file is almost surely in metres; "
-            "meshes must be in mm (declare the folder's units, e.g. MeshFolder(path, units='m'))"
-        )
-    if d > max_diameter:
-        raise ValueError(
-            f"diameter {d:.4g} mm is above {max_diameter} mm: wrong units (micrometres?) or a "
-            "whole scene; declare the folder's units (MeshFolder(path, units=...)) or raise "
-            "max_diameter"
-        )
-    return d
 
 
 def _read_models_info(path: pathlib.Path) -> dict[int, dict[str, Any]]:
@@ -240,6 +231,7 @@ class MeshPool:
         min_diameter: float = 1.0,
         max_diameter: float = 5000.0,
         cache_size: int = 256,
+        units_option: str = "MeshFolder(path, units='{}')",
     ):
         ids = [r.obj_id for r in records]
         if len(set(ids)) != len(ids):
@@ -247,6 +239,8 @@ class MeshPool:
         self.records: tuple[MeshRecord, ...] = tuple(records)
         self.min_diameter = min_diameter
         self.max_diameter = max_diameter
+        # How a wrong-units message names the fix ("{}" is a unit): the CLI passes its flag.
+        self.units_option = units_option
         self._cache: collections.OrderedDict[int, LoadedMesh] = collections.OrderedDict()
         self._cache_size = cache_size
         self._bad: dict[int, str] = {}
@@ -275,20 +269,30 @@ class MeshPool:
         try:
             if rec.mesh is not None:
                 mesh = rec.mesh
-                _check_structure(mesh)
+                check_mesh_arrays(np.asarray(mesh.vertices), np.asarray(mesh.faces), rec.name)
             else:
                 mesh = load_mesh_file(rec.path)
-                _check_structure(mesh)
                 if rec.scale != 1.0:
                     mesh.apply_scale(rec.scale)
                 if rec.recenter:
                     mesh.apply_translation(-mesh.bounds.mean(0))
-            diameter = _check_size(mesh, self.min_diameter, self.max_diameter)
+            diameter = check_units(
+                mesh_diameter(np.asarray(mesh.vertices)),
+                rec.path if rec.path is not None else rec.name,
+                self.min_diameter,
+                self.max_diameter,
+            )
         except Exception as e:  # a bad mesh is skipped, never fatal
             where = rec.path if rec.path is not None else rec.name
-            reason = f"{type(e).__name__}: {e}" if not isinstance(e, ValueError) else str(e)
+            if isinstance(e, MeshUnitsError):
+                reason = e.message(self.units_option)
+            elif isinstance(e, ValueError):
+                reason = str(e)
+            else:
+                reason = f"{type(e).__name__}: {e}"
             self._bad[index] = reason
-            warnings.warn(f"skipping mesh {where}: {reason}", MeshSkippedWarning, stacklevel=2)
+            said = reason if reason.startswith(str(where)) else f"{where}: {reason}"
+            warnings.warn(f"skipping mesh {said}", MeshSkippedWarning, stacklevel=2)
             return None
         if rec.diameter is not None and abs(diameter - rec.diameter) > 0.05 * rec.diameter:
             warnings.warn(

@@ -38,6 +38,7 @@ import trimesh
 
 from threept_jax.geometry.diameter import mesh_diameter
 from threept_jax.geometry.symmetry import ContinuousSymmetry, Symmetries
+from threept_jax.render.mesh import MAX_MESH_FACES
 
 DIAMETER_RANGE_MM = (20.0, 250.0)
 DEFAULT_MAX_FACES = 5000
@@ -598,6 +599,12 @@ def generate_part(
     if max_faces < MIN_MAX_FACES:
         raise ValueError(f"max_faces={max_faces} is too small for every part family; use >= "
                          f"{MIN_MAX_FACES}")
+    if max_faces > MAX_MESH_FACES:
+        raise ValueError(
+            f"max_faces={max_faces} (--procedural-max-faces) is above {MAX_MESH_FACES}, more "
+            "than a loader takes in bounded memory; lower it (the default is "
+            f"{DEFAULT_MAX_FACES})"
+        )
     lo, hi = diameter_range
     if not 0 < lo < hi:
         raise ValueError(f"diameter_range {diameter_range} must satisfy 0 < low < high (mm)")

@@ -61,7 +61,7 @@ def test_bad_meshes_are_skipped_with_a_warning_and_counted(plain_tree):
     messages = [str(w.message) for w in caught if issubclass(w.category, M.MeshSkippedWarning)]
     assert len(messages) == 3
     assert any("garbage.ply" in m for m in messages)
-    assert any("truncated.ply" in m and "no triangles" in m for m in messages)
+    assert any("truncated.ply" in m and "the file is truncated" in m for m in messages)
     assert any("in_metres.stl" in m and "metres" in m and "units='m'" in m for m in messages)
     assert pool.skipped == 3
     assert set(pool.skipped_reasons) == {"cad/garbage", "cad/truncated", "cad/in_metres"}
@@ -184,3 +184,16 @@ def test_configuration_errors_raise_with_the_fix(tmp_path):
     (bop / "models_info.json").write_text("{not json")
     with pytest.raises(ValueError, match="models_info.json"):
         M.build_pool([bop])
+
+
+def test_units_message_names_the_flag_of_the_cli(plain_tree):
+    from datagen.generate import build_pool
+
+    pool = build_pool([str(plain_tree)], seed=0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        pool.load_all()
+    reason = pool.skipped_reasons["cad/in_metres"]
+    assert "in_metres.stl" in reason and "--mesh-units m" in reason and "units='" not in reason
+    msgs = [str(w.message) for w in caught if "in_metres" in str(w.message)]
+    assert len(msgs) == 1 and msgs[0].count("in_metres.stl") == 1

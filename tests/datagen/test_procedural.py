@@ -196,3 +196,10 @@ def test_bad_arguments_name_the_fix():
         P.generate_part(rng, "gear", max_faces=10)
     with pytest.raises(ValueError, match="diameter_range"):
         P.generate_part(rng, "gear", diameter_range=(50.0, 10.0))
+
+
+def test_face_budget_above_the_loader_limit_names_the_option():
+    from threept_jax.render.mesh import MAX_MESH_FACES
+
+    with pytest.raises(ValueError, match="--procedural-max-faces"):
+        P.generate_part(np.random.default_rng(0), "washer", max_faces=MAX_MESH_FACES + 1)

@@ -202,3 +202,39 @@ def test_formats_load_to_the_same_geometry(tmp_path, ext):
         mesh.vertices[mesh.faces[:, 2]] - mesh.vertices[mesh.faces[:, 0]]), axis=1).sum()
     np.testing.assert_allclose(area, 2 * (40 * 30 + 40 * 20 + 30 * 20), rtol=1e-6)
     assert is_closed(mesh)
+
+
+@pytest.mark.parametrize(
+    "body, why",
+    [
+        (b"", "cannot read the mesh"),
+        (np.random.default_rng(1).bytes(2000), "cannot read the mesh"),
+        (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+         b"property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+         b"end_header\n0 0 0\n10 0 0\n", "truncated"),
+        (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+         b"property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+         b"end_header\n0 0 0\n10 0 0\n0 10 0\n3 0 1 5\n", "face indices out of range"),
+        (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+         b"property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+         b"end_header\n0 0 0\nnan 0 0\n0 10 0\n3 0 1 2\n", "NaN or infinite"),
+    ],
+    ids=["empty", "random", "truncated", "index", "nan"],
+)
+def test_corrupt_files_name_the_file_and_the_problem(tmp_path, body, why):
+    path = tmp_path / "broken.ply"
+    path.write_bytes(body)
+    with pytest.raises(ValueError, match=why) as err:
+        load_mesh(path)
+    assert str(path) in str(err.value)
+
+
+def test_units_error_is_a_dedicated_type_naming_the_file(tmp_path):
+    from threept_jax.geometry.diameter import MeshUnitsError
+
+    path = _write_ply(tmp_path / "part.ply", *_box((0.1, 0.05, 0.02)))
+    with pytest.raises(MeshUnitsError) as err:
+        load_mesh(path)
+    assert err.value.path == path
+    np.testing.assert_allclose(err.value.diameter, np.linalg.norm([0.1, 0.05, 0.02]), rtol=1e-6)
+    assert "--units m" in err.value.message("--units {}")

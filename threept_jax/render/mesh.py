@@ -26,11 +26,15 @@ from typing import Any
 
 import numpy as np
 
-from threept_jax.geometry.diameter import MAX_DIAMETER_MM, MIN_DIAMETER_MM, mesh_diameter
+from threept_jax.data.ply import check_ply_counts
+from threept_jax.geometry.diameter import check_units, mesh_diameter
 from threept_jax.geometry.symmetry import Symmetries
 
 _UNIT_SCALE = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 DEFAULT_GREY = 0.7  # albedo of meshes without colours or texture
+#: Largest face count :func:`load_mesh` accepts: loading needs about 0.5 kB per face (a 2M-face
+#: mesh peaks near 1 GB), so this bounds it near 5 GB instead of failing late, out of memory.
+MAX_MESH_FACES = 10_000_000
 
 
 def _readonly(a: np.ndarray | None) -> np.ndarray | None:
@@ -39,16 +43,25 @@ def _readonly(a: np.ndarray | None) -> np.ndarray | None:
     return a
 
 
-def _check_units(diameter: float, name: str) -> None:
-    if not (MIN_DIAMETER_MM <= diameter <= MAX_DIAMETER_MM):
-        if diameter < MIN_DIAMETER_MM:
-            hint = "looks like metres; load it with load_mesh(path, units='m') to convert to mm"
-        else:
-            hint = "looks like micrometres or a wrong scale; rescale it to mm before loading"
+def check_mesh_arrays(vertices: np.ndarray, faces: np.ndarray, where) -> None:
+    """Raise ValueError naming ``where`` unless the arrays hold a usable triangle mesh."""
+    if len(vertices) == 0 or len(faces) == 0:
         raise ValueError(
-            f"mesh {name!r} has diameter {diameter:.4g} after unit conversion, outside "
-            f"[{MIN_DIAMETER_MM}, {MAX_DIAMETER_MM}] mm: it {hint} "
-            "(units= accepts 'mm', 'cm', 'm', 'in'; meshes are never rescaled silently)"
+            f"{where}: mesh is empty, no triangles ({len(vertices)} vertices, {len(faces)} "
+            "faces): the file is empty or truncated, or holds a point cloud"
+        )
+    bad = ~np.isfinite(vertices).all(1)
+    if bad.any():
+        raise ValueError(
+            f"{where}: {int(bad.sum())} vertices have NaN or infinite coordinates "
+            f"(first: vertex {int(np.argmax(bad))}); repair or re-export the mesh"
+        )
+    out = (faces < 0) | (faces >= len(vertices))
+    if out.any():
+        f = int(np.argmax(out.any(1)))
+        raise ValueError(
+            f"{where}: face indices out of range: face {f} has {np.asarray(faces[f]).tolist()} outside "
+            f"[0, {len(vertices)}) ({int(out.any(1).sum())} such faces); the mesh is corrupt"
         )
 
 
@@ -107,18 +120,7 @@ class Mesh:
             raise ValueError(f"mesh {self.name!r}: vertices must be [N, 3], got {v.shape}")
         if f.ndim != 2 or f.shape[-1] != 3:
             raise ValueError(f"mesh {self.name!r}: faces must be [F, 3] triangles, got {f.shape}")
-        if len(v) == 0 or len(f) == 0:
-            raise ValueError(
-                f"mesh {self.name!r} is empty ({len(v)} vertices, {len(f)} faces): "
-                "check the file, or that it holds triangles rather than a point cloud"
-            )
-        if not np.all(np.isfinite(v)):
-            raise ValueError(f"mesh {self.name!r} has non-finite vertex coordinates")
-        if f.min() < 0 or f.max() >= len(v):
-            raise ValueError(
-                f"mesh {self.name!r}: face indices must lie in [0, {len(v)}), "
-                f"got [{f.min()}, {f.max()}]"
-            )
+        check_mesh_arrays(v, f, f"mesh {self.name!r}")
         f = f.astype(np.int32)
         set_("vertices", _readonly(v))
         set_("faces", _readonly(f))
@@ -128,7 +130,10 @@ class Mesh:
         norm = np.linalg.norm(n, axis=-1, keepdims=True)
         # Some BOP files store unnormalised normals (YCB-V obj 10); zero normals fall back to the
         # welded face normals.
-        n = np.where(norm > 1e-12, n / np.maximum(norm, 1e-12), vertex_normals(v, f))
+        if (norm <= 1e-12).any():
+            n = np.where(norm > 1e-12, n / np.maximum(norm, 1e-12), vertex_normals(v, f))
+        else:
+            n = n / norm
         set_("normals", _readonly(np.ascontiguousarray(n, np.float32)))
         if self.colors is not None:
             c = np.asarray(self.colors, np.float32)
@@ -151,7 +156,7 @@ class Mesh:
             set_("texture", _readonly(np.ascontiguousarray(tex)))
         if self.diameter is None:
             set_("diameter", mesh_diameter(v))
-        _check_units(float(self.diameter), self.name)
+        check_units(float(self.diameter), self.name)
 
     @property
     def num_vertices(self) -> int:
@@ -242,11 +247,14 @@ def load_mesh(
       path: mesh file. A PLY's ``comment TextureFile`` image is read from beside it; a missing
         texture file drops the UVs with a warning (YCB-V ships textures for a few objects only).
       units: the file's length unit, one of 'mm', 'cm', 'm', 'in'; vertices are scaled to mm.
-        A diameter outside [1, 5000] mm after conversion raises: pick the right ``units``.
+        A diameter outside [1, 5000] mm after conversion raises
+        :class:`~threept_jax.geometry.diameter.MeshUnitsError`: pick the right ``units``.
       models_info: BOP ``models_info.json`` for symmetries: 'auto' looks beside the file for an
         ``obj_<id>`` entry, a path or an already-parsed entry dict may be given, None skips.
 
-    Non-watertight or degenerate meshes load with a warning; empty meshes raise.
+    Non-watertight or degenerate meshes load with a warning. A file that cannot be read, is
+    empty, has NaN/inf vertices or face indices out of range, or has more than
+    ``MAX_MESH_FACES`` faces raises ValueError naming the file, before any processing.
     """
     import trimesh
 
@@ -257,12 +265,28 @@ def load_mesh(
         raise ValueError(f"units must be one of {sorted(_UNIT_SCALE)}, got {units!r}")
     is_ply = path.suffix.lower() == ".ply"
     kwargs = {"skip_materials": True} if is_ply else {}
-    loaded = trimesh.load(path, process=False, force="mesh", **kwargs)
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise ValueError(f"{path} holds no triangles (got {type(loaded).__name__})")
-    tm = loaded
-    vertices = np.asarray(tm.vertices, np.float64) * _UNIT_SCALE[units]
-    faces = np.asarray(tm.faces, np.int64)
+    try:
+        tm = trimesh.load(path, process=False, force="mesh", **kwargs)
+        if not isinstance(tm, trimesh.Trimesh):
+            raise ValueError(f"no triangle mesh in it (got {type(tm).__name__})")
+        vertices = np.asarray(tm.vertices, np.float64).reshape(-1, 3)
+        faces = np.asarray(tm.faces, np.int64).reshape(-1, 3)
+    except Exception as e:  # trimesh and numpy raise anything on corrupt files
+        raise ValueError(
+            f"{path}: cannot read the mesh ({type(e).__name__}: {e}); the file is corrupt, "
+            "truncated or not a mesh"
+        ) from None
+    if str(path).lower().endswith(".ply"):
+        check_ply_counts(path, len(vertices), len(faces))
+    check_mesh_arrays(vertices, faces, path)
+    if len(faces) > MAX_MESH_FACES:
+        raise ValueError(
+            f"{path}: {len(faces)} faces, above the {MAX_MESH_FACES} that load_mesh takes "
+            f"(about {len(faces) * 5e-7:.0f} GB to load); decimate the file first, e.g. with "
+            "fast_simplification.simplify (the decimation of prepare_mesh(max_faces=)) or "
+            "MeshLab's quadric edge collapse"
+        )
+    vertices = vertices * _UNIT_SCALE[units]
 
     normals = None
     if "vertex_normals" in tm._cache.cache:  # normals stored in the file, not recomputed
@@ -316,6 +340,7 @@ def load_mesh(
         texture=texture,
         symmetries=symmetries,
         name=path.name,
+        diameter=check_units(mesh_diameter(vertices), path),
     )
     _warn_quality(mesh)
     return mesh
