@@ -18,6 +18,7 @@ import numpy as np
 
 from infer.api import DEFAULT_CACHE, Camera, load, prepare_views, run_scene
 from infer.onboarding import ONBOARD_TEMPLATES
+from threept_jax.geometry.diameter import MeshUnitsError
 from threept_jax.geometry.validate import validate_intrinsics, validate_rigid
 
 
@@ -241,6 +242,11 @@ def main(argv: Sequence[str] | None = None):
 
             return run_bop(args)
         return run_images(args)
+    except MeshUnitsError as e:  # name this CLI's flag, not the Python argument
+        fix = e.message("--units {}") if args.command == "images" else (
+            f"{e}; BOP models are in mm: rescale the models folder")
+        print(f"error: {fix}", file=sys.stderr)
+        raise SystemExit(2) from e
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(2) from e

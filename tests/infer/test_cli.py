@@ -163,3 +163,24 @@ def test_no_detections_are_reported_on_console_and_overlay(files, capsys, monkey
     band = caption_band_height(image.shape[:2])
     assert np.any(overlay[:band] != image[:band])  # the caption
     np.testing.assert_array_equal(overlay[band:], image[band:])
+
+
+def test_mesh_units_error_names_the_units_flag(files, capsys, monkeypatch):
+    """A mesh in metres (a 0.1 m tetrahedron): the error names --units, not units='m'."""
+    from threept_jax.render import load_mesh
+
+    v = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]])
+    lines = ["ply", "format ascii 1.0", "element vertex 4", "property float x",
+             "property float y", "property float z", "element face 4",
+             "property list uchar int vertex_indices", "end_header"]
+    lines += [" ".join(map(str, row)) for row in v]
+    lines += ["3 0 2 1", "3 0 1 3", "3 0 3 2", "3 1 2 3"]
+    (files / "a.ply").write_text("\n".join(lines) + "\n")
+
+    class MeshLoadingModels:  # the real mesh loader and its unit check; no network needed
+        def onboard(self, meshes, units):
+            return [load_mesh(path, units=units) for path in meshes.values()]
+
+    monkeypatch.setattr(cli, "load_models", lambda args: MeshLoadingModels())
+    err = _fails(capsys, _images_argv(files, "--K", "60,60,31.5,23.5"), "pass --units m")
+    assert "units='m'" not in err and "a.ply" in err
