@@ -37,10 +37,10 @@ import numpy as np
 import trimesh
 
 from datagen.procedural import Part
-from threept_jax.data.ply import check_ply_counts
 from threept_jax.geometry.diameter import MeshUnitsError, check_units, mesh_diameter
 from threept_jax.geometry.symmetry import Symmetries
-from threept_jax.render.mesh import MAX_MESH_FACES, check_mesh_arrays
+from threept_jax.geometry.validate import validate_mesh_arrays
+from threept_jax.render.mesh import read_trimesh
 
 MESH_EXTENSIONS = (".ply", ".obj", ".glb", ".gltf", ".stl", ".off")
 UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
@@ -127,26 +127,7 @@ def load_mesh_file(path: str | pathlib.Path) -> trimesh.Trimesh:
     that cannot be read, is empty, has NaN/inf vertices, face indices out of range or more
     than ``MAX_MESH_FACES`` faces raises ValueError naming the file and the problem.
     """
-    try:
-        mesh = trimesh.load(str(path), force="mesh", process=False)
-        if not isinstance(mesh, trimesh.Trimesh):
-            raise ValueError(f"no triangle mesh in it (got {type(mesh).__name__})")
-        v = np.asarray(mesh.vertices, np.float64).reshape(-1, 3)
-        f = np.asarray(mesh.faces, np.int64).reshape(-1, 3)
-    except Exception as e:  # trimesh and numpy raise anything on corrupt files
-        raise ValueError(
-            f"{path}: cannot read the mesh ({type(e).__name__}: {e}); the file is corrupt, "
-            "truncated or not a mesh"
-        ) from None
-    if str(path).lower().endswith(".ply"):
-        check_ply_counts(path, len(v), len(f))
-    check_mesh_arrays(v, f, path)
-    if len(f) > MAX_MESH_FACES:
-        raise ValueError(
-            f"{path}: {len(f)} faces, above the {MAX_MESH_FACES} the pool loads; decimate the "
-            "file before adding it (e.g. fast_simplification.simplify or MeshLab)"
-        )
-    return mesh
+    return read_trimesh(path)
 
 
 def _read_models_info(path: pathlib.Path) -> dict[int, dict[str, Any]]:
@@ -269,7 +250,7 @@ class MeshPool:
         try:
             if rec.mesh is not None:
                 mesh = rec.mesh
-                check_mesh_arrays(np.asarray(mesh.vertices), np.asarray(mesh.faces), rec.name)
+                validate_mesh_arrays(np.asarray(mesh.vertices), np.asarray(mesh.faces), rec.name)
             else:
                 mesh = load_mesh_file(rec.path)
                 if rec.scale != 1.0:

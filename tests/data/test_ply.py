@@ -33,7 +33,7 @@ CASES = {
     "inf vertex": ((HEAD + "0 0 0\n1 0 0\n0 inf 0\n3 0 1 2\n").encode(), "NaN or infinite"),
     "quad": ((HEAD + "0 0 0\n1 0 0\n0 1 0\n4 0 1 2 2\n").encode(), "only triangle faces"),
     "zero faces": (HEAD.replace("face 1", "face 0").encode() + b"0 0 0\n1 0 0\n0 1 0\n",
-                   "no triangle faces"),
+                   "no triangles"),
     "bad count": (HEAD.replace("vertex 3", "vertex three").encode(), "header line 3"),
     "bad type": (HEAD.replace("float y", "flaot y").encode(), "unknown property type 'flaot'"),
     "bad property line": (HEAD.replace("property float z", "property float").encode(),

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from threept_jax.geometry.validate import validate_mesh_arrays, validate_vertices
+
 __all__ = [
     "PlyHeader",
     "read_ply_header",
@@ -237,26 +239,10 @@ def _read_body(path: pathlib.Path, want_faces: bool):
     except (ValueError, IndexError, KeyError, TypeError, OverflowError) as e:
         # numpy's own words ("could not convert string to float", ...) under the file's name.
         raise ValueError(f"{path}: corrupt PLY file ({type(e).__name__}: {e})") from None
-    if len(verts) == 0:
-        raise ValueError(f"{path}: PLY file has no vertices")
-    bad = ~np.isfinite(verts).all(1)
-    if bad.any():
-        raise ValueError(
-            f"{path}: {int(bad.sum())} vertices have NaN or infinite coordinates "
-            f"(first: vertex {int(np.argmax(bad))}); repair or re-export the model"
-        )
     if want_faces:
-        if faces is None or len(faces) == 0:
-            raise ValueError(
-                f"{path}: PLY file holds no triangle faces (a point cloud?); a mesh needs faces"
-            )
-        out = (faces < 0) | (faces >= len(verts))
-        if out.any():
-            f = int(np.argmax(out.any(1)))
-            raise ValueError(
-                f"{path}: face indices out of range: face {f} has {faces[f].tolist()} outside "
-                f"[0, {len(verts)}) ({int(out.any(1).sum())} such faces); the mesh is corrupt"
-            )
+        validate_mesh_arrays(verts, faces, path)
+    else:
+        validate_vertices(verts, path)
     return verts, faces
 
 

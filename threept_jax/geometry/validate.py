@@ -151,3 +151,33 @@ def validate_rigid(T, where: str = "T_cam_obj", atol: float = 1e-3) -> np.ndarra
             f"{det:.3g}): it is scaled, reflecting or not a rotation; project the rotation with "
             "threept_jax.geometry.rotations.project_to_so3")
     return T
+
+
+def validate_vertices(vertices: np.ndarray, where) -> None:
+    """Raise ValueError naming ``where`` when there are no vertices or some are NaN/inf."""
+    if len(vertices) == 0:
+        raise ValueError(f"{where}: no vertices: the file is empty or truncated")
+    bad = ~np.isfinite(vertices).all(1)
+    if bad.any():
+        raise ValueError(
+            f"{where}: {int(bad.sum())} vertices have NaN or infinite coordinates "
+            f"(first: vertex {int(np.argmax(bad))}); repair or re-export the mesh"
+        )
+
+
+def validate_mesh_arrays(vertices: np.ndarray, faces: np.ndarray | None, where) -> None:
+    """Raise ValueError naming ``where`` unless vertices [N, 3] and faces [F, 3] hold a usable
+    triangle mesh: some triangles, finite vertices, every face index in [0, N). Runs before
+    any processing that indexes vertices by faces (duplicate removal, normals)."""
+    validate_vertices(vertices, where)
+    if faces is None or len(faces) == 0:
+        raise ValueError(
+            f"{where}: no triangles ({len(vertices)} vertices, 0 faces): the file is truncated "
+            "or holds a point cloud; a mesh needs faces")
+    out = (faces < 0) | (faces >= len(vertices))
+    if out.any():
+        f = int(np.argmax(out.any(1)))
+        raise ValueError(
+            f"{where}: face indices out of range: face {f} has {np.asarray(faces[f]).tolist()} "
+            f"outside [0, {len(vertices)}) ({int(out.any(1).sum())} such faces); the mesh is "
+            "corrupt")

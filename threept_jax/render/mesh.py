@@ -29,6 +29,7 @@ import numpy as np
 from threept_jax.data.ply import check_ply_counts
 from threept_jax.geometry.diameter import check_units, mesh_diameter
 from threept_jax.geometry.symmetry import Symmetries
+from threept_jax.geometry.validate import validate_mesh_arrays
 
 _UNIT_SCALE = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 DEFAULT_GREY = 0.7  # albedo of meshes without colours or texture
@@ -37,32 +38,44 @@ DEFAULT_GREY = 0.7  # albedo of meshes without colours or texture
 MAX_MESH_FACES = 10_000_000
 
 
+def read_trimesh(path: str | pathlib.Path, **kwargs):
+    """Read one mesh file with trimesh (no processing) as a single ``trimesh.Trimesh``, checked.
+
+    The one reader of mesh files for :func:`load_mesh` and the datagen mesh pool: a file that
+    cannot be read, holds no triangles, has NaN/inf vertices, face indices out of range, fewer
+    elements than its PLY header declares (trimesh returns a partial mesh), or more than
+    ``MAX_MESH_FACES`` faces raises ValueError naming the file, before any processing.
+    """
+    import trimesh
+
+    try:
+        tm = trimesh.load(str(path), process=False, force="mesh", **kwargs)
+        if not isinstance(tm, trimesh.Trimesh):
+            raise ValueError(f"no triangle mesh in it (got {type(tm).__name__})")
+        vertices = np.asarray(tm.vertices, np.float64).reshape(-1, 3)
+        faces = np.asarray(tm.faces, np.int64).reshape(-1, 3)
+    except Exception as e:  # trimesh and numpy raise anything on corrupt files
+        raise ValueError(
+            f"{path}: cannot read the mesh ({type(e).__name__}: {e}); the file is corrupt, "
+            "truncated or not a mesh"
+        ) from None
+    if str(path).lower().endswith(".ply"):
+        check_ply_counts(path, len(vertices), len(faces))
+    validate_mesh_arrays(vertices, faces, path)
+    if len(faces) > MAX_MESH_FACES:
+        raise ValueError(
+            f"{path}: {len(faces)} faces, above the {MAX_MESH_FACES} that a mesh may have "
+            f"(about {len(faces) * 5e-7:.0f} GB to load); decimate the file first, e.g. with "
+            "fast_simplification.simplify (the decimation of prepare_mesh(max_faces=)) or "
+            "MeshLab's quadric edge collapse"
+        )
+    return tm
+
+
 def _readonly(a: np.ndarray | None) -> np.ndarray | None:
     if a is not None:
         a.setflags(write=False)
     return a
-
-
-def check_mesh_arrays(vertices: np.ndarray, faces: np.ndarray, where) -> None:
-    """Raise ValueError naming ``where`` unless the arrays hold a usable triangle mesh."""
-    if len(vertices) == 0 or len(faces) == 0:
-        raise ValueError(
-            f"{where}: mesh is empty, no triangles ({len(vertices)} vertices, {len(faces)} "
-            "faces): the file is empty or truncated, or holds a point cloud"
-        )
-    bad = ~np.isfinite(vertices).all(1)
-    if bad.any():
-        raise ValueError(
-            f"{where}: {int(bad.sum())} vertices have NaN or infinite coordinates "
-            f"(first: vertex {int(np.argmax(bad))}); repair or re-export the mesh"
-        )
-    out = (faces < 0) | (faces >= len(vertices))
-    if out.any():
-        f = int(np.argmax(out.any(1)))
-        raise ValueError(
-            f"{where}: face indices out of range: face {f} has {np.asarray(faces[f]).tolist()} outside "
-            f"[0, {len(vertices)}) ({int(out.any(1).sum())} such faces); the mesh is corrupt"
-        )
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -120,7 +133,7 @@ class Mesh:
             raise ValueError(f"mesh {self.name!r}: vertices must be [N, 3], got {v.shape}")
         if f.ndim != 2 or f.shape[-1] != 3:
             raise ValueError(f"mesh {self.name!r}: faces must be [F, 3] triangles, got {f.shape}")
-        check_mesh_arrays(v, f, f"mesh {self.name!r}")
+        validate_mesh_arrays(v, f, f"mesh {self.name!r}")
         f = f.astype(np.int32)
         set_("vertices", _readonly(v))
         set_("faces", _readonly(f))
@@ -256,37 +269,15 @@ def load_mesh(
     empty, has NaN/inf vertices or face indices out of range, or has more than
     ``MAX_MESH_FACES`` faces raises ValueError naming the file, before any processing.
     """
-    import trimesh
-
     path = pathlib.Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mesh file {path} not found")
     if units not in _UNIT_SCALE:
         raise ValueError(f"units must be one of {sorted(_UNIT_SCALE)}, got {units!r}")
     is_ply = path.suffix.lower() == ".ply"
-    kwargs = {"skip_materials": True} if is_ply else {}
-    try:
-        tm = trimesh.load(path, process=False, force="mesh", **kwargs)
-        if not isinstance(tm, trimesh.Trimesh):
-            raise ValueError(f"no triangle mesh in it (got {type(tm).__name__})")
-        vertices = np.asarray(tm.vertices, np.float64).reshape(-1, 3)
-        faces = np.asarray(tm.faces, np.int64).reshape(-1, 3)
-    except Exception as e:  # trimesh and numpy raise anything on corrupt files
-        raise ValueError(
-            f"{path}: cannot read the mesh ({type(e).__name__}: {e}); the file is corrupt, "
-            "truncated or not a mesh"
-        ) from None
-    if str(path).lower().endswith(".ply"):
-        check_ply_counts(path, len(vertices), len(faces))
-    check_mesh_arrays(vertices, faces, path)
-    if len(faces) > MAX_MESH_FACES:
-        raise ValueError(
-            f"{path}: {len(faces)} faces, above the {MAX_MESH_FACES} that load_mesh takes "
-            f"(about {len(faces) * 5e-7:.0f} GB to load); decimate the file first, e.g. with "
-            "fast_simplification.simplify (the decimation of prepare_mesh(max_faces=)) or "
-            "MeshLab's quadric edge collapse"
-        )
-    vertices = vertices * _UNIT_SCALE[units]
+    tm = read_trimesh(path, **({"skip_materials": True} if is_ply else {}))
+    vertices = np.asarray(tm.vertices, np.float64) * _UNIT_SCALE[units]
+    faces = np.asarray(tm.faces, np.int64)
 
     normals = None
     if "vertex_normals" in tm._cache.cache:  # normals stored in the file, not recomputed
