@@ -26,9 +26,10 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flops import cost_flops, matmul_flops_per_s, vit_forward_flops
 
 from threept_jax.losses.detection import DetectorLossConfig
-from threept_jax.models.configs import DetectorConfig, decode_variant
+from threept_jax.models.configs import DetectorConfig
 from train import sharding
 from train import trainer_detector as td
 from train.configs import detector as detector_configs
@@ -69,51 +70,14 @@ def synthetic_batch(rng: np.random.Generator, batch: int, tile: int, render: int
 
 def vit_train_flops(cfg: DetectorConfig, batch: int, num_templates: int) -> float:
     """Analytic FLOPs of one step: 3 x the ViT forward FLOPs (forward + backward) over every
-    image of the batch (the tile with its prior tokens, 12 priors and the templates).
-
-    A forward over N tokens of width D, depth L, MLP width F costs per layer 4 N D^2 multiply-
-    adds for the q, k, v and output projections, 2 N^2 D for the attention scores and values
-    and 2 N D F for the MLP; FLOPs are twice the multiply-adds. Heads, pooling and the loss
-    are left out (a few percent).
-    """
-    arch = decode_variant(cfg.variant)
-    d, depth, f, p = arch["width"], arch["depth"], arch["mlp_dim"], arch["patch_size"]
-
-    def forward(n_tokens):
-        return 2.0 * depth * (4 * n_tokens * d * d + 2 * n_tokens**2 * d + 2 * n_tokens * d * f)
-
+    image of the batch (the tile with its prior tokens, 12 priors and the templates); the
+    forward count is :func:`flops.vit_forward_flops`."""
+    p = cfg.patch_size
     image_tokens = (cfg.image_size // p) ** 2 + cfg.num_prior_tokens
     render_tokens = (cfg.render_size // p) ** 2
-    per_example = forward(image_tokens) + (12 + num_templates) * forward(render_tokens)
+    per_example = (vit_forward_flops(cfg.variant, image_tokens)
+                   + (12 + num_templates) * vit_forward_flops(cfg.variant, render_tokens))
     return 3.0 * batch * per_example
-
-
-def matmul_flops_per_s(dtype, n: int) -> float:
-    """Warm FLOP/s of an n x n x n matmul on the default device (the in-process reference):
-    the best of three timings of five products, which discounts other load on the machine."""
-    a = jnp.asarray(np.random.default_rng(0).standard_normal((n, n)), dtype)
-    f = jax.jit(lambda x, y: x @ y)
-    f(a, a).block_until_ready()
-    reps, best = 5, 0.0
-    for _ in range(3):
-        t0 = time.perf_counter()
-        for _ in range(reps):
-            out = f(a, a)
-        out.block_until_ready()
-        best = max(best, 2.0 * n**3 * reps / (time.perf_counter() - t0))
-    return best
-
-
-def cost_flops(compiled) -> float | None:
-    try:
-        cost = compiled.cost_analysis()
-    except Exception:  # some backends do not implement it
-        return None
-    if isinstance(cost, (list, tuple)):
-        cost = cost[0] if cost else None
-    if not cost or "flops" not in cost:
-        return None
-    return float(cost["flops"])
 
 
 def bench_variant(variant: str, steps: int, accel: bool, batch_override: int | None) -> dict:

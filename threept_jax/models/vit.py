@@ -103,12 +103,31 @@ class Mlp(nnx.Module):
         return self.fc2(jax.nn.gelu(self.fc1(x)))
 
 
+def attention_xla(q: Array, k: Array, v: Array, mask: Array | None = None) -> Array:
+    """softmax(q k^T / sqrt(Dh)) v per head: q [B, N, H, Dh], k, v [B, S, H, Dh] -> [B, N, H, Dh].
+
+    The XLA path on every backend. Heads are moved in front before the two batched matmuls, so
+    both are plain [N, Dh] x [Dh, S] products per head; ``jax.nn.dot_product_attention``'s XLA
+    path contracts the [B, N, H, Dh] layout directly and ran at 0.6x this speed on CPU
+    (``bench/detect.py``: B/16, 1072 tokens). Logits and softmax in float32; ``mask`` [B, 1, 1, S]
+    (True = attend) hides keys.
+    """
+    scale = 1.0 / np.sqrt(q.shape[-1])
+    qh, kh, vh = (a.transpose(0, 2, 1, 3) for a in (q, k, v))  # [B, H, N|S, Dh]
+    logits = jnp.einsum("bhnd,bhsd->bhns", qh, kh, preferred_element_type=jnp.float32) * scale
+    if mask is not None:
+        logits = jnp.where(mask, logits, jnp.finfo(jnp.float32).min)
+    weights = jax.nn.softmax(logits, axis=-1).astype(v.dtype)
+    return jnp.einsum("bhns,bhsd->bhnd", weights, vh).transpose(0, 2, 1, 3)
+
+
 class Attention(nnx.Module):
     """Multi-head dot-product attention: queries [B, N, D], keys/values [B, S, D] -> [B, N, D].
 
     Self-attention when ``context`` is None. ``mask`` [B, S] (True = attend) hides padded
-    keys. Built on ``jax.nn.dot_product_attention`` (logits and softmax in float32 in the XLA
-    path; ``implementation="cudnn"`` selects cuDNN flash attention on GPU).
+    keys. The XLA path is :func:`attention_xla` (logits and softmax in float32);
+    ``implementation="cudnn"`` selects cuDNN flash attention on GPU through
+    ``jax.nn.dot_product_attention``.
     """
 
     def __init__(self, width: int, num_heads: int, *, implementation: str | None = None,
@@ -129,7 +148,11 @@ class Attention(nnx.Module):
         q, k, v = self.query(x), self.key(context), self.value(context)  # [B, N|S, H, Dh]
         if mask is not None:
             mask = jnp.asarray(mask, bool)[:, None, None, :]  # [B, 1, 1, S]
-        y = jax.nn.dot_product_attention(q, k, v, mask=mask, implementation=self.implementation)
+        if self.implementation in (None, "xla"):
+            y = attention_xla(q, k, v, mask)
+        else:
+            y = jax.nn.dot_product_attention(q, k, v, mask=mask,
+                                             implementation=self.implementation)
         return self.out(y)
 
 

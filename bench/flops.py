@@ -1,0 +1,59 @@
+"""FLOP counting and the in-process matmul reference shared by the benchmarks.
+
+An MFU-style figure that needs no datasheet: a program's achieved FLOP/s (FLOPs from XLA's cost
+analysis of the compiled program, with an analytic ViT count beside it as a cross-check) divided
+by the FLOP/s of a plain matmul measured in the same process on the same device.
+"""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from threept_jax.models.configs import decode_variant
+
+
+def vit_forward_flops(variant: str, n_tokens: int) -> float:
+    """Analytic FLOPs of one ViT forward over ``n_tokens`` tokens.
+
+    Per layer of width D and MLP width F: 4 N D^2 multiply-adds for the q, k, v and output
+    projections, 2 N^2 D for the attention scores and values, 2 N D F for the MLP; FLOPs are
+    twice the multiply-adds. Patch embedding, norms, heads and pooling are left out (a few
+    percent).
+    """
+    arch = decode_variant(variant)
+    d, depth, f = arch["width"], arch["depth"], arch["mlp_dim"]
+    n = n_tokens
+    return 2.0 * depth * (4 * n * d * d + 2 * n**2 * d + 2 * n * d * f)
+
+
+def matmul_flops_per_s(dtype, n: int) -> float:
+    """Warm FLOP/s of an n x n x n matmul on the default device (the in-process reference):
+    the best of three timings of five products, which discounts other load on the machine."""
+    a = jnp.asarray(np.random.default_rng(0).standard_normal((n, n)), dtype)
+    f = jax.jit(lambda x, y: x @ y)
+    f(a, a).block_until_ready()
+    reps, best = 5, 0.0
+    for _ in range(3):
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            out = f(a, a)
+        out.block_until_ready()
+        best = max(best, 2.0 * n**3 * reps / (time.perf_counter() - t0))
+    return best
+
+
+def cost_flops(compiled) -> float | None:
+    """FLOPs of a compiled program from XLA's cost analysis (None where not implemented)."""
+    try:
+        cost = compiled.cost_analysis()
+    except Exception:  # some backends do not implement it
+        return None
+    if isinstance(cost, (list, tuple)):
+        cost = cost[0] if cost else None
+    if not cost or "flops" not in cost:
+        return None
+    return float(cost["flops"])
