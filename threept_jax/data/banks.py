@@ -35,10 +35,12 @@ R_cam_obj`` (:func:`threept_jax.geometry.camera.object_centred_rotation`), where
 the smallest rotation that takes the optical axis (z) onto that ray: the object's rotation in a
 virtual camera with the same centre, turned to look at the object (its image axes stay as close
 to the real camera's as the turn allows). Inference goes back with
-:func:`threept_jax.geometry.camera.camera_rotation` from the ray through the detected box
-centre. What remains is the perspective warp between the real image around the object and the
-virtual camera's view: the real image plane is tilted by the off-axis angle theta against the
-virtual one, so the object appears stretched by 1 / cos(theta) along the radial direction (4 %
+:func:`threept_jax.geometry.camera.camera_rotation` along the same ray, through the sphere
+centre of the pose it fits to the detected box
+(:func:`threept_jax.pipeline.object_generation.pose_from_box`). What remains is the perspective
+warp between the real image around the object and the virtual camera's view: the real image
+plane is tilted by the off-axis angle theta against the virtual one, so the object appears
+stretched by 1 / cos(theta) along the radial direction (4 %
 at 16 degrees off-axis, 15 % at 30 degrees).
 
 **On disk** a bank is one ``.npz`` (no pickle), written atomically: the images are PNG (or
