@@ -61,7 +61,7 @@ import grain
 import numpy as np
 
 from threept_jax.data import records
-from threept_jax.data.banks import BankFile, ObjectEntry, load_object_table, resize_renders
+from threept_jax.data.banks import BankFile, ObjectEntry, check_render_size, load_object_table
 from threept_jax.geometry.camera import object_centred_rotation
 from threept_jax.geometry.symmetry import nearest_templates
 
@@ -86,7 +86,9 @@ class ExampleConfig:
       num_templates: Nt templates sampled per example (0: none, as in evaluation).
       max_symmetries: Ns; objects with more symmetry transforms keep Ns evenly spaced ones
         (identity first). Positives are always computed with all of them.
-      render_size: side the renders are resized to (``None``: as stored in the banks).
+      render_size: side of the bank renders, the detector's render size (``None``: as
+        stored); banks of another size raise (``banks.check_render_size``): renders are never
+        resized, so training sees the images inference onboarding makes.
       negative_prob: probability of querying an object absent from the image.
       scale_prior: anchor size range in pixels on a ``scale_reference`` tile.
       min_query_visib: an instance can be the query anchor when its visib_fract is at least
@@ -388,7 +390,7 @@ class AttachRenders(grain.transforms.RandomMap):
         cfg = self.config
         bank = self.banks.get(int(ex["obj_id"]))
         out = dict(ex)
-        out["prior_rgb"] = resize_renders(bank.priors(), cfg.render_size)
+        out["prior_rgb"] = check_render_size(bank.priors(), cfg.render_size, str(bank.path))
         sym = bank.symmetries
         Ns = cfg.max_symmetries
         keep = (np.arange(len(sym)) if len(sym) <= Ns
@@ -426,7 +428,8 @@ class AttachRenders(grain.transforms.RandomMap):
         chosen = chosen[rng.permutation(chosen.size)]
         where = {int(c): i for i, c in enumerate(chosen)}
         index[valid] = [where[int(p)] for p in pos]
-        out["template_rgb"] = resize_renders(bank.templates(chosen), cfg.render_size)
+        out["template_rgb"] = check_render_size(bank.templates(chosen), cfg.render_size,
+                                                str(bank.path))
         out["template_rotations"] = bank.template_rotations[chosen].astype(np.float32)
         out["template_index"] = index
         return out
