@@ -273,6 +273,10 @@ def test_bad_inputs_name_the_fix(toy, tmp_path):
     tile = pl.SampleTile(cfg, pl.BankCache(table)).random_map(ex, np.random.default_rng(0))
     with pytest.raises(ValueError, match="num_train_templates"):
         pl.AttachRenders(cfg, pl.BankCache(table)).random_map(tile, np.random.default_rng(0))
+    # Banks are never resized (issue 13 item 1.3): the toy banks hold 32 px renders.
+    with pytest.raises(ValueError, match=r"32x32 renders .* render_size is 24.*--size 24"):
+        pl.AttachRenders(_cfg(render_size=24), pl.BankCache(table)).random_map(
+            tile, np.random.default_rng(0))
     with pytest.raises(ValueError, match="num_templates"):
         _cfg(num_templates=2, max_instances=4)
     with pytest.raises(ValueError, match="no object of split 'test'"):
