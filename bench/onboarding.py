@@ -1,6 +1,7 @@
-"""Benchmark: seconds per object of inference onboarding, split into rendering, resizing and
-embedding, for the inference default bank (``infer.onboarding.ONBOARD_TEMPLATES``) against the
-paper's 5140 templates, in the same process.
+"""Benchmark: seconds per object of inference onboarding, split into rendering (at the model's
+render size, supersampled) and embedding, for the inference default bank
+(``infer.onboarding.ONBOARD_TEMPLATES``) against the paper's 5140 templates, in the same
+process.
 
 Objects are BOP meshes from ../shared/meshes/bop (YCB-V objects 1, 2, ...: 15.7k faces each
 once welded, one face bucket, so the first object is cold (compilation included) and the
@@ -37,15 +38,19 @@ import jax  # noqa: E402
 from flax import nnx  # noqa: E402
 
 from infer.onboarding import ONBOARD_TEMPLATES, Onboarder  # noqa: E402
-from threept_jax.data.banks import BANK_SIZE, BANK_TEMPLATES  # noqa: E402
+from threept_jax.data.banks import BANK_TEMPLATES  # noqa: E402
 from threept_jax.geometry.grids import super_fibonacci_rotations  # noqa: E402
 from threept_jax.models.configs import DetectorConfig  # noqa: E402
 from threept_jax.models.detector import Detector  # noqa: E402
-from threept_jax.pipeline.onboarding import DEVICE_CHUNK, BankRenderer  # noqa: E402
+from threept_jax.pipeline.onboarding import (  # noqa: E402
+    DEVICE_CHUNK,
+    SUPERSAMPLE,
+    BankRenderer,
+)
 from threept_jax.render import Mesh, load_mesh  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "meshes" / "bop" / "ycbv" / "models"
-STAGES = ("render", "resize", "embed")
+STAGES = ("render", "embed")
 
 
 def bench_meshes(n: int) -> dict[int, Mesh]:
@@ -65,10 +70,9 @@ def bench_meshes(n: int) -> dict[int, Mesh]:
     return out
 
 
-def time_bank(model, cfg, meshes, num_templates: int, bank_size: int) -> list[dict]:
+def time_bank(model, cfg, meshes, num_templates: int) -> list[dict]:
     """Per object: seconds by stage and in total, for one Onboarder (fresh jit caches)."""
-    ob = Onboarder(model, cfg, "bench@0", cache_dir=None, num_templates=num_templates,
-                   bank_size=bank_size)
+    ob = Onboarder(model, cfg, "bench@0", cache_dir=None, num_templates=num_templates)
     rows = []
     for oid, mesh in meshes.items():
         t0 = time.perf_counter()
@@ -106,7 +110,6 @@ def main() -> None:
     p.add_argument("--objects", type=int, default=3, help="objects per bank size (>= 2: warm)")
     p.add_argument("--variant", default="tiny/16", help="detector ViT (S/16: the small config)")
     p.add_argument("--render-size", type=int, default=32)
-    p.add_argument("--bank-size", type=int, default=BANK_SIZE)
     p.add_argument("--reference", type=int, default=BANK_TEMPLATES, help="reference bank size")
     p.add_argument("--coverage", action="store_true", help="also print the grid coverage table")
     args = p.parse_args()
@@ -114,8 +117,8 @@ def main() -> None:
         raise SystemExit("error: --objects must be >= 1")
 
     print(f"jax {jax.__version__} on {jax.default_backend()} ({os.cpu_count()} CPUs), "
-          f"detector {args.variant} render {args.render_size}px, bank renders "
-          f"{args.bank_size}px")
+          f"detector {args.variant} render {args.render_size}px (supersampled "
+          f"{SUPERSAMPLE}x)")
     cfg = DetectorConfig(variant=args.variant, image_size=512, render_size=args.render_size,
                          dtype="float32")
     model = Detector(cfg, rngs=nnx.Rngs(0))
@@ -123,15 +126,15 @@ def main() -> None:
     print(f"objects: {', '.join(f'{m.name} ({m.num_faces} faces)' for m in meshes.values())}")
     print(f"\nseconds per object{'':>7} " + " ".join(f"{k:>8}" for k in (*STAGES, "total")))
     ref = report(f"{args.reference} templates",
-                 time_bank(model, cfg, meshes, args.reference, args.bank_size))
+                 time_bank(model, cfg, meshes, args.reference))
     new = report(f"{ONBOARD_TEMPLATES} templates",
-                 time_bank(model, cfg, meshes, ONBOARD_TEMPLATES, args.bank_size))
+                 time_bank(model, cfg, meshes, ONBOARD_TEMPLATES))
     print(f"ratio warm total {args.reference} / {ONBOARD_TEMPLATES}: {ref / new:.2f}x")
 
     mesh = next(iter(meshes.values()))
     R = super_fibonacci_rotations(ONBOARD_TEMPLATES)
-    auto = BankRenderer(mesh, args.bank_size)
-    fixed = BankRenderer(mesh, args.bank_size, chunk=DEVICE_CHUNK)
+    auto = BankRenderer(mesh, args.render_size)
+    fixed = BankRenderer(mesh, args.render_size, chunk=DEVICE_CHUNK)
     print(f"\n{ONBOARD_TEMPLATES} template renders of {mesh.name} "
           f"({auto.renderer.mesh.num_faces_padded} padded faces), warm ms per view:")
     times = {}

@@ -9,7 +9,10 @@ diameter, bounding sphere and symmetries as ``banks/obj_XXXXXX.npz``::
 
     python -m datagen.banks --records OUT [--size 96] [--num-templates 5140] [--force]
 
-Meshes come from the table's ``mesh`` field (written by ``datagen.pack``). Banks whose size and
+``--size`` must be the detector's ``render_size``: training uses the renders as stored and
+inference onboarding renders at that size with the same function
+(``threept_jax.pipeline.onboarding``, supersampled 3x and box-averaged), so both see the same
+images. Meshes come from the table's ``mesh`` field (written by ``datagen.pack``). Banks whose size and
 template count already match are kept unless ``--force``. Meshes above ``--max-faces`` are
 decimated for the rasterizer (the camera stays the full model's); renders go in chunks, so
 memory is bounded for any T.
@@ -100,7 +103,9 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("--records", required=True, help="folder holding objects.json")
-    p.add_argument("--size", type=int, default=B.BANK_SIZE, help="render side, pixels")
+    p.add_argument("--size", type=int, default=B.BANK_SIZE,
+                   help="render side, pixels: the detector's render_size (tiny 32, small 112, "
+                        "paper 224); renders are supersampled 3x and never resized")
     p.add_argument("--num-templates", type=int, default=B.BANK_TEMPLATES)
     p.add_argument("--obj-ids", type=int, nargs="*", default=None)
     p.add_argument("--max-faces", type=int, default=20000,

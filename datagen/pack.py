@@ -432,7 +432,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="image encoding inside the records")
     p.add_argument("--workers", type=int, default=1, help="encoding processes")
     p.add_argument("--no-banks", action="store_true", help="skip rendering the banks")
-    p.add_argument("--bank-size", type=int, default=BANK_SIZE)
+    p.add_argument("--bank-size", type=int, default=BANK_SIZE,
+                   help="bank render side: the detector's render_size (tiny 32, small 112, "
+                        "paper 224)")
     p.add_argument("--num-templates", type=int, default=BANK_TEMPLATES)
     p.add_argument("--bank-max-faces", type=int, default=20000)
     p.add_argument("--bank-backend", choices=("jax", "mitsuba"), default="jax")

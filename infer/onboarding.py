@@ -1,13 +1,13 @@
 """Onboarding: a CAD model becomes a detector query (prior tokens + template bank), cached.
 
-For each object the 12 prior views and T templates are rendered with the bank camera
-(``threept_jax.pipeline.onboarding.BankRenderer``, the same images training saw), resized to the
-model's render size exactly as the training pipeline does, and embedded by the detector's object
-tower, block by block (``template_chunk`` templates per block, 64 on CPU: one compiled embedding
-for every object, and progress that counts views rendered *and* embedded). The result is cached on disk
-under a key made of the mesh file's bytes, the detector's identity (``model_id``: workdir and
-step) and the rendering settings, so a second run onboards in milliseconds and a changed mesh or
-checkpoint is never served stale.
+For each object the 12 prior views and T templates are rendered with the bank camera at the
+model's render size (``threept_jax.pipeline.onboarding.BankRenderer``: the function, size and
+anti-aliasing that packed the training banks, so the images are those training saw) and embedded
+by the detector's object tower, block by block (``template_chunk`` templates per block, 64 on
+CPU: one compiled embedding for every object, and progress that counts views rendered *and*
+embedded). The result is cached on disk under a key made of the mesh file's bytes, the
+detector's identity (``model_id``: workdir and step) and the rendering settings, so a second run
+onboards in milliseconds and a changed mesh or checkpoint is never served stale.
 
 **Bank size.** Inference onboards ``ONBOARD_TEMPLATES`` = 1024 templates by default, not the
 paper's 5140 (``threept_jax.data.banks.BANK_TEMPLATES``, still what training banks hold and
@@ -35,7 +35,7 @@ import numpy as np
 from flax import nnx
 from tqdm import tqdm
 
-from threept_jax.data.banks import BANK_SIZE, bank_symmetries, resize_renders
+from threept_jax.data.banks import bank_symmetries
 from threept_jax.data.files import atomic_savez
 from threept_jax.geometry.grids import prior_view_rotations, super_fibonacci_rotations
 from threept_jax.models.configs import DetectorConfig
@@ -48,7 +48,7 @@ NUM_POINTS = 1024
 #: Face budget of the mesh kept for rendering overlays and masks.
 RENDER_FACES = 4096
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: renders at the model's render size, supersampled
 #: Templates per object onboarded for inference by default (module docstring).
 ONBOARD_TEMPLATES = 1024
 #: Templates embedded per call (one compiled embedding for all objects; progress per block).
@@ -103,14 +103,13 @@ def _points(mesh: Mesh, n: int = NUM_POINTS) -> np.ndarray:
 class Onboarder:
     """Embeds objects with one detector (``model`` from ``infer.checkpoint.load_detector``).
 
-    ``timings[obj_id]``: seconds spent rendering, resizing and embedding the last onboarding of
+    ``timings[obj_id]``: seconds spent rendering and embedding the last onboarding of
     that object (zeros when it came from the cache), for benchmarks.
     """
 
     def __init__(self, model: Detector, config: DetectorConfig, model_id: str,
                  cache_dir: str | os.PathLike | None = None,
-                 num_templates: int = ONBOARD_TEMPLATES, bank_size: int = BANK_SIZE,
-                 template_chunk: int | None = None):
+                 num_templates: int = ONBOARD_TEMPLATES, template_chunk: int | None = None):
         if template_chunk is None:
             template_chunk = (CPU_TEMPLATE_CHUNK if jax.default_backend() == "cpu"
                               else DEVICE_TEMPLATE_CHUNK)
@@ -121,7 +120,6 @@ class Onboarder:
         self.model_id = model_id
         self.cache_dir = None if cache_dir is None else pathlib.Path(cache_dir)
         self.num_templates = int(num_templates)
-        self.bank_size = int(bank_size)
         self.template_chunk = min(int(template_chunk), self.num_templates)
         self.timings: dict[int, dict[str, float]] = {}
         graphdef, params = nnx.split(model)
@@ -144,7 +142,7 @@ class Onboarder:
     def _key(self, mesh_bytes: bytes) -> str:
         h = hashlib.sha256()
         h.update(mesh_bytes)
-        h.update(json.dumps([CACHE_VERSION, self.model_id, self.num_templates, self.bank_size,
+        h.update(json.dumps([CACHE_VERSION, self.model_id, self.num_templates,
                              self.config.render_size]).encode())
         return h.hexdigest()[:32]
 
@@ -152,7 +150,7 @@ class Onboarder:
         """(prior tokens [Np, D], template bank [T, E], template rotations [T, 3, 3], bank
         renderer) of a model, rendered and embedded block by block."""
         size = self.config.render_size
-        seconds = dict(render=0.0, resize=0.0, embed=0.0)
+        seconds = dict(render=0.0, embed=0.0)
 
         def stage(name, fn, *args):
             t0 = time.perf_counter()
@@ -163,10 +161,9 @@ class Onboarder:
         def embed(fn, images):
             return np.asarray(fn(self._params, images))  # np.asarray waits for the result
 
-        render = stage("render", BankRenderer, model, self.bank_size)
+        render = stage("render", BankRenderer, model, size)
         priors = stage("render", render, prior_view_rotations())
-        prior = stage("embed", embed, self._embed_priors, stage("resize", resize_renders,
-                                                                  priors, size))
+        prior = stage("embed", embed, self._embed_priors, priors)
         if progress is not None:
             progress.update(len(priors))
         rotations = super_fibonacci_rotations(self.num_templates)
@@ -175,7 +172,7 @@ class Onboarder:
         for start in range(0, len(rotations), c):
             R = rotations[start : start + c]
             n = len(R)
-            images = stage("resize", resize_renders, stage("render", render, R), size)
+            images = stage("render", render, R)
             if n < c:  # pad the last block: one compiled embedding whatever T is
                 images = np.concatenate([images, np.repeat(images[-1:], c - n, 0)])
             bank.append(stage("embed", embed, self._embed_templates, images)[:n])
@@ -200,7 +197,7 @@ class Onboarder:
                 prior, bank, rotations, symmetries, center = (
                     z["prior_tokens"], z["template_bank"], z["template_rotations"],
                     z["symmetries"], z["center"])
-            self.timings[int(obj_id)] = dict(render=0.0, resize=0.0, embed=0.0)
+            self.timings[int(obj_id)] = dict(render=0.0, embed=0.0)
             if progress is not None:
                 progress.update(self.views_per_object)
         else:

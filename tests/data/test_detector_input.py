@@ -80,7 +80,7 @@ def test_tiles_put_targets_in_the_scale_prior(toy):
             z = A[0, 0]
             x0 = 0.5 - (A[0, 2] + 0.5) / z
             y0 = 0.5 - (A[1, 2] + 0.5) / z
-            ref_boxes = np.clip((ex["bbox_obj"][inst] - [x0, y0, x0, y0]) * z, 0, TILE)
+            ref_boxes = (ex["bbox_obj"][inst] - [x0, y0, x0, y0]) * z  # amodal: not clipped
             n = int((out["mask"] | out["ignore"]).sum())
             assert n >= 1
             for box in out["boxes"][:n]:
@@ -100,6 +100,45 @@ def test_tiles_put_targets_in_the_scale_prior(toy):
                 assert ys.min() >= box[1] - 1 and ys.max() + 1 <= box[3] + 1
             checked += 1
     assert checked >= 20
+
+
+def test_targets_are_amodal_and_give_the_depth_of_a_cut_object(toy):
+    """Issue 13 item 1.4: an object half outside the image (and so the tile) keeps its whole
+    box as the target, and object generation gets its depth from it within 10 %."""
+    from threept_jax.pipeline.object_generation import translation_from_box
+
+    corners = np.stack(np.meshgrid([-40.0, 40.0], [-25.0, 25.0], [-15.0, 15.0]), -1)
+    points = corners.reshape(-1, 3)  # an 80 x 50 x 30 mm cuboid
+    K = np.array([[300.0, 0, 127.5], [0, 300.0, 127.5], [0, 0, 1]])
+    R = Rotation.from_euler("xyz", [20, -30, 10], degrees=True).as_matrix()
+    # A in the middle of a 256 x 256 image; B of the same object centred on its right edge.
+    t = np.array([[0.0, 0.0, 500.0], [(255.5 - 127.5) / 300 * 600.0, 10.0, 600.0]])
+
+    def box(tt):
+        uv = cv2.projectPoints(points, cv2.Rodrigues(R)[0], tt, K, None)[0][:, 0] + 0.5
+        return np.concatenate([uv.min(0), uv.max(0)])
+
+    bbox = np.stack([box(tt) for tt in t])
+    assert bbox[1, 0] < 256 - 20 and bbox[1, 2] > 256 + 20  # B is cut by the image border
+    instances = np.zeros((256, 256), np.uint16)
+    for k, b in enumerate(np.clip(np.round(bbox), 0, 256).astype(int)):
+        instances[b[1]:b[3], b[0]:b[2]] = k + 1
+    obj = sorted(banks.load_object_table(toy))[0]
+    T = np.tile(np.eye(4), (2, 1, 1))
+    T[:, :3, :3], T[:, :3, 3] = R, t
+    ex = {"rgb": np.zeros((256, 256, 3), np.uint8), "instances": instances, "K": K,
+          "obj_id": np.array([obj, obj]), "visib_fract": np.array([1.0, 0.05]),
+          "bbox_obj": bbox, "T_cam_obj": T, "scene_id": 0, "im_id": 0}
+    # The anchor (A: B is under min_query_visib) sized so that the crop is the whole image.
+    size = (bbox[0, 2:] - bbox[0, :2]).max()
+    cfg = _cfg(negative_prob=0.0, scale_prior=(2 * size, 2 * size), min_target_visib=0.01)
+    out = pl.SampleTile(cfg, pl.BankCache(banks.load_object_table(toy))).random_map(
+        ex, np.random.default_rng(0))
+    np.testing.assert_allclose(out["K"], pl.crop_transform(0, 0, 256, TILE) @ K, rtol=1e-6)
+    assert out["mask"][:2].all()
+    np.testing.assert_allclose(out["boxes"][1], bbox[1] * TILE / 256, rtol=1e-5)
+    got = np.asarray(translation_from_box(out["boxes"][1], out["K"], R, points))
+    assert abs(got[2] / t[1, 2] - 1) < 0.10, got
 
 
 def test_target_rotations_are_object_centred(toy):
@@ -234,6 +273,10 @@ def test_bad_inputs_name_the_fix(toy, tmp_path):
     tile = pl.SampleTile(cfg, pl.BankCache(table)).random_map(ex, np.random.default_rng(0))
     with pytest.raises(ValueError, match="num_train_templates"):
         pl.AttachRenders(cfg, pl.BankCache(table)).random_map(tile, np.random.default_rng(0))
+    # Banks are never resized (issue 13 item 1.3): the toy banks hold 32 px renders.
+    with pytest.raises(ValueError, match=r"32x32 renders .* render_size is 24.*--size 24"):
+        pl.AttachRenders(_cfg(render_size=24), pl.BankCache(table)).random_map(
+            tile, np.random.default_rng(0))
     with pytest.raises(ValueError, match="num_templates"):
         _cfg(num_templates=2, max_instances=4)
     with pytest.raises(ValueError, match="no object of split 'test'"):

@@ -26,7 +26,7 @@ def pipeline(tmp_path_factory):
     cfg = DetectorConfig(variant="tiny/16", image_size=64, render_size=32)
     model = Detector(cfg, rngs=nnx.Rngs(0))
     cache = tmp_path_factory.mktemp("onboarding")
-    onboarder = Onboarder(model, cfg, "untrained@0", cache_dir=cache, num_templates=48, bank_size=32)
+    onboarder = Onboarder(model, cfg, "untrained@0", cache_dir=cache, num_templates=48)
     meshes = {1: _box_mesh((80, 40, 20), "plate"), 2: _box_mesh((30, 30, 90), "post")}
     objects = onboarder.onboard_all(meshes, show_progress=False)
     again = onboarder.onboard_all(meshes, show_progress=False)  # from the cache
@@ -111,8 +111,7 @@ def test_public_api_runs_the_stages_and_reuses_compiled_detectors(pipeline):
     import infer
 
     model, cfg, objects, _, cache = pipeline
-    onboarder = Onboarder(model, cfg, "untrained@0", cache_dir=cache, num_templates=48,
-                          bank_size=32)
+    onboarder = Onboarder(model, cfg, "untrained@0", cache_dir=cache, num_templates=48)
     models = infer.Models(model, cfg, 0, onboarder)
     meshes = {1: _box_mesh((80, 40, 20), "plate"), 2: _box_mesh((30, 30, 90), "post")}
     image = np.full((64, 64, 3), 128, np.uint8)

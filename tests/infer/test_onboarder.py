@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 import infer.onboarding as onboarding
 from infer.onboarding import ONBOARD_TEMPLATES, Onboarder
-from threept_jax.data.banks import BANK_TEMPLATES, resize_renders
+from threept_jax.data.banks import BANK_TEMPLATES
 from threept_jax.geometry.grids import super_fibonacci_rotations
 from threept_jax.models.configs import DetectorConfig
 from threept_jax.models.detector import Detector
@@ -56,19 +56,19 @@ def tiny():
 
 def test_blocks_embed_like_the_whole_bank(tiny):
     """Rendering and embedding in padded blocks of 16 gives what the detector returns for the
-    whole bank (render_bank's images, resized, embedded in one call)."""
+    whole bank (render_bank's images at the model's render size, embedded in one call)."""
     model, cfg = tiny
     mesh = _box((80, 40, 20), "plate")
-    ob = Onboarder(model, cfg, "m@0", num_templates=40, bank_size=48, template_chunk=16)
+    ob = Onboarder(model, cfg, "m@0", num_templates=40, template_chunk=16)
     obj = ob.onboard(3, mesh)
-    rb = render_bank(mesh, 3, float(mesh.diameter), mesh.symmetries, 48, 40)
-    prior = model.embed_object(resize_renders(rb.prior_rgb, 32)[None])[0]
-    bank = model.embed_templates(resize_renders(rb.template_rgb, 32)[None])[0]
+    rb = render_bank(mesh, 3, float(mesh.diameter), mesh.symmetries, 32, 40)
+    prior = model.embed_object(rb.prior_rgb[None])[0]
+    bank = model.embed_templates(rb.template_rgb[None])[0]
     np.testing.assert_allclose(obj.prior_tokens, np.asarray(prior), atol=1e-4)
     np.testing.assert_allclose(obj.template_bank, np.asarray(bank), atol=1e-4)
     np.testing.assert_allclose(obj.template_rotations, rb.template_rotations)
     np.testing.assert_allclose(obj.center, rb.center)
-    assert set(ob.timings[3]) == {"render", "resize", "embed"}
+    assert set(ob.timings[3]) == {"render", "embed"}
 
 
 class _RecordingBar:
@@ -99,7 +99,7 @@ def test_progress_counts_views_done_per_object(tiny, tmp_path, monkeypatch):
     model, cfg = tiny
     monkeypatch.setattr(onboarding, "tqdm", _RecordingBar)
     meshes = {1: _box((80, 40, 20), "plate"), 2: _box((30, 30, 90), "post")}
-    ob = Onboarder(model, cfg, "m@0", cache_dir=tmp_path, num_templates=20, bank_size=32,
+    ob = Onboarder(model, cfg, "m@0", cache_dir=tmp_path, num_templates=20,
                    template_chunk=8)
     ob.onboard(1, meshes[1])  # object 1 is cached before the run
     ob.onboard_all(meshes)

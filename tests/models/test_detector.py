@@ -213,3 +213,26 @@ def test_training_loss_gradients_reach_every_head(tiny):
                     ("box_out", grads.box_head.out.kernel)]:
         assert norm(g) > 0, name
 
+
+
+def test_box_head_reaches_amodal_boxes_past_the_tile():
+    """Issue 13 item 1.4: the decoded box spans centres (-0.5, 1.5) and sizes (0, 2) tile sides
+    (hand-derived from low + (high - low) * sigmoid), so a target half outside the tile (centre
+    on the tile edge, 1.2 tiles wide) is reachable; raw 0 is the patch's own cell."""
+    from threept_jax.models.heads import decode_boxes
+
+    gh, gw = 2, 3
+    big = np.full((gh * gw, 4), 40.0, np.float32)
+    np.testing.assert_allclose(decode_boxes(big, gh, gw), np.tile([1.5, 1.5, 2.0, 2.0], (6, 1)))
+    np.testing.assert_allclose(decode_boxes(-big, gh, gw), np.tile([-0.5, -0.5, 0, 0], (6, 1)),
+                               atol=1e-6)
+    i, j = np.divmod(np.arange(gh * gw), gw)
+    cell = np.stack([(j + 0.5) / gw, (i + 0.5) / gh, np.full(6, 1 / gw), np.full(6, 1 / gh)], -1)
+    np.testing.assert_allclose(decode_boxes(np.zeros((6, 4), np.float32), gh, gw), cell,
+                               atol=1e-6)
+    target = np.array([1.0, 0.5, 1.2, 0.4])
+    p = (target - [-0.5, -0.5, 0.0, 0.0]) / 2.0
+    cell_p = (cell[0] - [-0.5, -0.5, 0.0, 0.0]) / 2.0
+    raw = np.log(p / (1 - p)) - np.log(cell_p / (1 - cell_p))  # logit(target) - logit(cell)
+    got = decode_boxes(np.tile(raw, (6, 1)).astype(np.float32), gh, gw)[0]
+    np.testing.assert_allclose(got, target, atol=1e-5)

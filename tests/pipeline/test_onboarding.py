@@ -70,11 +70,13 @@ def test_silhouettes_match_projected_hull(backend):
         uv, _ = cv2.projectPoints(np.asarray(b.vertices), cv2.Rodrigues(R)[0], t, K, None)
         uv = uv.reshape(-1, 2)
         hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
-        # Rasterise the hull at pixel centres: pixel (i, j) is inside when its centre is.
+        # Rasterise the hull at the 3 x 3 samples of each pixel (supersampled renders,
+        # offsets -1/3, 0, 1/3 pixel): a pixel is non-black when any of its samples is inside.
         ys, xs = np.mgrid[0 : HW[0], 0 : HW[1]]
+        offsets = [(dx, dy) for dx in (-1 / 3, 0, 1 / 3) for dy in (-1 / 3, 0, 1 / 3)]
         inside = np.array(
-            [cv2.pointPolygonTest(hull, (float(x), float(y)), False) >= 0
-             for x, y in zip(xs.ravel(), ys.ravel())]
+            [any(cv2.pointPolygonTest(hull, (float(x + dx), float(y + dy)), False) >= 0
+                 for dx, dy in offsets) for x, y in zip(xs.ravel(), ys.ravel())]
         ).reshape(HW)
         mask = im.any(-1)
         iou = (mask & inside).sum() / (mask | inside).sum()
@@ -140,3 +142,62 @@ def test_default_chunk_follows_the_face_bucket_and_matches_single_views():
     single = render_object_views(renderer, R, HW, sphere=sph, chunk=1)
     assert batched.any()
     assert np.abs(batched.astype(int) - single).max() <= 1
+
+
+def test_training_bank_and_onboarding_renders_agree_per_pixel(tmp_path):
+    """Issue 13 item 1.3: the bank datagen packs for training, read back through the training
+    input (``AttachRenders``), and the renders the inference Onboarder embeds for the same mesh
+    file are the same images: at most 1 grey level apart on every pixel (they come from one
+    function at one size with one anti-aliasing rule; PNG storage is lossless)."""
+    import json
+
+    from flax import nnx
+
+    from datagen.banks import build_banks
+    from infer.onboarding import Onboarder
+    from threept_jax.data import banks
+    from threept_jax.data import detector_input as pl
+    from threept_jax.models.configs import DetectorConfig
+    from threept_jax.models.detector import Detector
+
+    # An asymmetric part: a plate with an off-centre peg, in mm.
+    plate = trimesh.creation.box((60.0, 36.0, 12.0))
+    peg = trimesh.creation.cylinder(radius=6.0, height=30.0, sections=12)
+    peg.apply_translation((18.0, 8.0, 15.0))
+    (tmp_path / "models").mkdir()
+    trimesh.util.concatenate([plate, peg]).export(tmp_path / "models" / "obj_000005.ply")
+    row = {"name": "part", "diameter": 80.0, "bank": "banks/obj_000005.npz",
+           "mesh": "models/obj_000005.ply"}
+    (tmp_path / "objects.json").write_text(json.dumps({"5": row}))
+    size, num_t = 32, 8
+    assert build_banks(tmp_path, size=size, num_templates=num_t, quiet=True) == [5]
+    cfg = pl.ExampleConfig(tile_size=64, max_instances=1, num_templates=num_t,
+                           max_symmetries=1, render_size=size)
+    ex = {"obj_id": np.int32(5), "mask": np.zeros(1, bool),
+          "rotations": np.eye(3, dtype=np.float32)[None]}
+    train = pl.AttachRenders(cfg, pl.BankCache(banks.load_object_table(tmp_path))).random_map(
+        ex, np.random.default_rng(0))
+
+    dcfg = DetectorConfig(variant="tiny/16", image_size=64, render_size=size)
+    ob = Onboarder(Detector(dcfg, rngs=nnx.Rngs(0)), dcfg, "m@0", num_templates=num_t,
+                   template_chunk=num_t)
+    seen = {}
+
+    def recording(name, fn):
+        def wrapped(params, images):
+            seen[name] = np.asarray(images)
+            return fn(params, images)
+        return wrapped
+
+    ob._embed_priors = recording("priors", ob._embed_priors)
+    ob._embed_templates = recording("templates", ob._embed_templates)
+    obj = ob.onboard(5, tmp_path / "models" / "obj_000005.ply")
+
+    assert seen["priors"].shape == train["prior_rgb"].shape == (12, size, size, 3)
+    assert train["prior_rgb"].any()
+    assert np.abs(seen["priors"].astype(int) - train["prior_rgb"]).max() <= 1
+    # Training samples the templates in a random order: match them by rotation.
+    order = [int(np.argmin(np.abs(obj.template_rotations - r).sum((1, 2))))
+             for r in train["template_rotations"]]
+    assert sorted(order) == list(range(num_t))
+    assert np.abs(seen["templates"][order].astype(int) - train["template_rgb"]).max() <= 1

@@ -35,10 +35,12 @@ R_cam_obj`` (:func:`threept_jax.geometry.camera.object_centred_rotation`), where
 the smallest rotation that takes the optical axis (z) onto that ray: the object's rotation in a
 virtual camera with the same centre, turned to look at the object (its image axes stay as close
 to the real camera's as the turn allows). Inference goes back with
-:func:`threept_jax.geometry.camera.camera_rotation` from the ray through the detected box
-centre. What remains is the perspective warp between the real image around the object and the
-virtual camera's view: the real image plane is tilted by the off-axis angle theta against the
-virtual one, so the object appears stretched by 1 / cos(theta) along the radial direction (4 %
+:func:`threept_jax.geometry.camera.camera_rotation` along the same ray, through the sphere
+centre of the pose it fits to the detected box
+(:func:`threept_jax.pipeline.object_generation.pose_from_box`). What remains is the perspective
+warp between the real image around the object and the virtual camera's view: the real image
+plane is tilted by the off-axis angle theta against the virtual one, so the object appears
+stretched by 1 / cos(theta) along the radial direction (4 %
 at 16 degrees off-axis, 15 % at 30 degrees).
 
 **On disk** a bank is one ``.npz`` (no pickle), written atomically: the images are PNG (or
@@ -91,7 +93,8 @@ BANK_SYM_DISC_STEP = 0.05
 
 __all__ = [
     "BANK_FORMAT_VERSION", "BANK_SYM_DISC_STEP", "BankFile", "DISTANCE_FACTOR", "FILL",
-    "ObjectEntry", "RenderBank", "bank_symmetries", "bounding_sphere", "resize_renders",
+    "ObjectEntry", "RenderBank", "bank_symmetries", "bounding_sphere", "check_render_size",
+    "resize_renders",
     "load_bank", "load_object_table",
     "render_camera", "render_pose", "save_bank", "write_object_table",
 ]
@@ -140,6 +143,19 @@ def bounding_sphere(vertices: np.ndarray) -> tuple[np.ndarray, float]:
         raise ValueError(f"vertices must be [N, 3] with N >= 1, got {v.shape}")
     c = (v.min(0) + v.max(0)) / 2.0
     return c, float(np.linalg.norm(v - c, axis=1).max())
+
+
+def check_render_size(images: np.ndarray, size: int | None, where: str) -> np.ndarray:
+    """``images`` uint8 [N, h, w, 3] when h = w = ``size`` (``None``: any size); raises
+    otherwise. Banks are rendered at the detector's render size and never resized, so training
+    and inference onboarding see the same images (``threept_jax.pipeline.onboarding``)."""
+    if size is None or images.shape[1:3] == (size, size):
+        return images
+    raise ValueError(
+        f"{where} holds {images.shape[1]}x{images.shape[2]} renders but the detector's "
+        f"render_size is {size}; banks are rendered at the model's render size (the size and "
+        f"anti-aliasing inference onboarding uses): re-render them with `python -m datagen.banks "
+        f"--records DIR --size {size} --force` (or pack with --bank-size {size})")
 
 
 def resize_renders(images: np.ndarray, size: int | None) -> np.ndarray:

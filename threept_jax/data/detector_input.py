@@ -12,10 +12,12 @@ Built from picklable grain transforms (usable in multiprocess workers) and
    and a square crop resized to the tile that puts the anchor instance at a size drawn
    log-uniformly from the scale prior (128-350 px on a 512 tile, scaled by ``tile / 512``;
    size = longer side of the amodal box). Targets are every instance of the query object in
-   the tile: amodal box clipped to the tile, kept when the share of the object visible in the
-   tile (``visib_fract`` x the share of its visible pixels inside the crop) is at least
-   ``min_target_visib``; the others are flagged ``ignore`` (evaluation ignores them, as BOP
-   ignores instances under 10 % visible).
+   the tile: its *amodal* box, not clipped to the tile (a box may extend past the tile side,
+   or below 0, as an object cut by the tile or image border does), since object generation
+   reads a detection as the object's whole box (``threept_jax.pipeline.object_generation``);
+   kept when the share of the object visible in the tile (``visib_fract`` x the share of its
+   visible pixels inside the crop) is at least ``min_target_visib``; the others are flagged
+   ``ignore`` (evaluation ignores them, as BOP ignores instances under 10 % visible).
 3. :class:`AttachRenders` - the query object's 12 prior renders, its symmetries (padded) and,
    for training, ``num_templates`` templates sampled from its bank: the positive template of
    every target (nearest to the ground truth up to symmetry, in float64 against the whole
@@ -40,7 +42,7 @@ sigma ``(c / t - 1) / 2`` source pixels.
 
 Example fields (M = ``max_instances``, Nt = ``num_templates``, Ns = ``max_symmetries``):
 ``image`` uint8 [t, t, 3], ``K`` float32 [3, 3], ``obj_id`` int32, ``negative`` bool,
-``boxes`` float32 [M, 4] (tile pixels, xyxy), ``mask`` bool [M], ``ignore`` bool [M],
+``boxes`` float32 [M, 4] (tile pixels, amodal xyxy), ``mask`` bool [M], ``ignore`` bool [M],
 ``rotations`` float32 [M, 3, 3], ``visib`` float32 [M], ``scene_id``, ``im_id`` int32,
 ``prior_rgb`` uint8 [12, h, w, 3], ``symmetries`` float32 [Ns, 4, 4], ``symmetry_mask`` bool
 [Ns] and, when Nt > 0, ``template_rgb`` uint8 [Nt, h, w, 3], ``template_rotations`` float32
@@ -59,7 +61,7 @@ import grain
 import numpy as np
 
 from threept_jax.data import records
-from threept_jax.data.banks import BankFile, ObjectEntry, load_object_table, resize_renders
+from threept_jax.data.banks import BankFile, ObjectEntry, check_render_size, load_object_table
 from threept_jax.geometry.camera import object_centred_rotation
 from threept_jax.geometry.symmetry import nearest_templates
 
@@ -84,15 +86,17 @@ class ExampleConfig:
       num_templates: Nt templates sampled per example (0: none, as in evaluation).
       max_symmetries: Ns; objects with more symmetry transforms keep Ns evenly spaced ones
         (identity first). Positives are always computed with all of them.
-      render_size: side the renders are resized to (``None``: as stored in the banks).
+      render_size: side of the bank renders, the detector's render size (``None``: as
+        stored); banks of another size raise (``banks.check_render_size``): renders are never
+        resized, so training sees the images inference onboarding makes.
       negative_prob: probability of querying an object absent from the image.
       scale_prior: anchor size range in pixels on a ``scale_reference`` tile.
       min_query_visib: an instance can be the query anchor when its visib_fract is at least
         this.
       min_target_visib: an instance is a target when at least this share of the object is
         visible inside the tile; smaller ones are flagged ``ignore``.
-      min_box_size: clipped boxes smaller than this (tile pixels) in width or height are
-        dropped.
+      min_box_size: instances whose box, clipped to the tile, is smaller than this (tile
+        pixels) in width or height are dropped.
       split: negatives are drawn from objects of this split of the object table (all objects
         when the table has no split field).
     """
@@ -332,9 +336,12 @@ class SampleTile(grain.transforms.RandomMap):
         total = np.bincount(ex["instances"].ravel(), minlength=m + 1)[1:m + 1].astype(np.float64)
         visib = np.asarray(ex["visib_fract"], np.float64) * np.where(
             total > 0, inside / np.maximum(total, 1.0), 0.0)
+        # Amodal targets: the object's whole box, which may extend past the tile, as object
+        # generation reads a detection (module docstring). Only the size test uses the part
+        # inside the tile.
         boxes = (np.asarray(ex["bbox_obj"], np.float64) - [x0, y0, x0, y0]) * z
-        boxes = np.clip(boxes, 0.0, t)
-        wh = boxes[:, 2:] - boxes[:, :2]
+        inner = np.clip(boxes, 0.0, t)
+        wh = inner[:, 2:] - inner[:, :2]
         present = (obj_ids == query) & (visib > 0) & np.all(wh >= cfg.min_box_size, axis=1)
         if negative:
             present[:] = False
@@ -383,7 +390,7 @@ class AttachRenders(grain.transforms.RandomMap):
         cfg = self.config
         bank = self.banks.get(int(ex["obj_id"]))
         out = dict(ex)
-        out["prior_rgb"] = resize_renders(bank.priors(), cfg.render_size)
+        out["prior_rgb"] = check_render_size(bank.priors(), cfg.render_size, str(bank.path))
         sym = bank.symmetries
         Ns = cfg.max_symmetries
         keep = (np.arange(len(sym)) if len(sym) <= Ns
@@ -421,7 +428,8 @@ class AttachRenders(grain.transforms.RandomMap):
         chosen = chosen[rng.permutation(chosen.size)]
         where = {int(c): i for i, c in enumerate(chosen)}
         index[valid] = [where[int(p)] for p in pos]
-        out["template_rgb"] = resize_renders(bank.templates(chosen), cfg.render_size)
+        out["template_rgb"] = check_render_size(bank.templates(chosen), cfg.render_size,
+                                                str(bank.path))
         out["template_rotations"] = bank.template_rotations[chosen].astype(np.float32)
         out["template_index"] = index
         return out

@@ -101,8 +101,8 @@ def make_targets(
       template_index: [B, M] the positive template of each instance (nearest to the ground
         truth up to symmetry), needed by the orientation term.
 
-    Returns a dict with ``boxes`` [B, M, 4] normalised cxcywh (clipped to the tile, zero where
-    padded), ``mask`` [B, M] and, when given, ``template_index``.
+    Returns a dict with ``boxes`` [B, M, 4] normalised cxcywh (amodal: not clipped to the
+    tile, issue 13 item 1.4; zero where padded), ``mask`` [B, M] and, when given, ``template_index``.
     """
     boxes_xyxy = jnp.asarray(boxes_xyxy, jnp.float32)
     mask = jnp.asarray(mask, bool)
@@ -114,7 +114,7 @@ def make_targets(
                          f"{jnp.shape(template_index)}")
     h, w = image_hw
     scale = jnp.asarray([w, h, w, h], jnp.float32)
-    norm = jnp.clip(boxes_xyxy / scale, 0.0, 1.0)
+    norm = boxes_xyxy / scale
     out = {"boxes": jnp.where(mask[..., None], xyxy_to_cxcywh(norm), 0.0), "mask": mask}
     if template_index is not None:
         out["template_index"] = jnp.asarray(template_index, jnp.int32)

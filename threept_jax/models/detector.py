@@ -13,7 +13,8 @@ Separately callable (and separately jit-able) stages:
 3. ``detect(image_tiles [B, H, W, 3], prior_tokens [B, Np, D])``: the prior tokens, tagged
    with a learned per-slot embedding, are concatenated to the tile's patch tokens and the
    image tower attends over all of them (early fusion). Every output patch token is an object
-   hypothesis with a box (sigmoid of MLP + grid prior, OWL-ViT), a presence logit and a unit
+   hypothesis with an amodal box (sigmoid of MLP + grid prior, OWL-ViT, stretched past the
+   tile: ``heads.decode_boxes``), a presence logit and a unit
    embedding [B, P, E].
 4. ``orientation_scores(embeddings, template_bank) -> [B, P, T]``: cosine similarities, one
    matrix multiply. Orientation logits are ``scale * cos + bias`` with a learned scalar scale
@@ -39,7 +40,7 @@ from flax import nnx
 
 from threept_jax.geometry.boxes import cxcywh_to_xyxy
 from threept_jax.models.configs import DetectorConfig
-from threept_jax.models.heads import AttentionPool, PredictorMLP, box_grid_bias, logit
+from threept_jax.models.heads import AttentionPool, PredictorMLP, decode_boxes, logit
 from threept_jax.models.vit import ViT
 
 Array = jax.Array
@@ -207,7 +208,7 @@ class Detector(nnx.Module):
         grid = self.image_tower.grid(image_tiles.shape[1:3])
         prior = prior_tokens.astype(cfg.dtype) + self.prior_slot_embed[...].astype(cfg.dtype)[None]
         x = self.image_tower(image_tiles, prior, prior_mask)["patch_tokens"]
-        boxes = jax.nn.sigmoid(self.box_head(x) + box_grid_bias(*grid)[None])
+        boxes = decode_boxes(self.box_head(x), *grid)
         return {
             "boxes": boxes,
             "presence_logits": self.presence_head(x)[..., 0],

@@ -5,7 +5,10 @@ The box head follows OWL-ViT (Minderer et al., ECCV 2022; scenic ``owl_vit/model
 ``sigmoid(MLP(token) + bias)`` where the bias is the inverse sigmoid of the patch's own centre
 and of one patch's size, so a zero-initialised MLP starts with every patch proposing itself.
 Scenic's bias uses each patch's bottom-right *corner*; we use its centre, which is where a
-patch's own box is centred. Shapes: B batch, N tokens, K probes, P patches, D width.
+patch's own box is centred. Boxes are *amodal* (issue 13 item 1.4: an object cut by the tile
+border keeps its whole box, which object generation reads as the object's size), so the
+sigmoid is stretched to ``BOX_RANGE``: centres in (-0.5, 1.5) and sizes in (0, 2) tile sides
+(:func:`decode_boxes`). Shapes: B batch, N tokens, K probes, P patches, D width.
 """
 
 from __future__ import annotations
@@ -28,18 +31,32 @@ def logit(p: float) -> float:
     return float(np.log(p) - np.log1p(-p))
 
 
+#: (low, high) of the decoded normalised (cx, cy, w, h): amodal boxes may pass the tile.
+BOX_RANGE = (np.array([-0.5, -0.5, 0.0, 0.0]), np.array([1.5, 1.5, 2.0, 2.0]))
+
+
+def decode_boxes(raw: Array, grid_h: int, grid_w: int) -> Array:
+    """[..., gh * gw, 4] head outputs -> normalised cxcywh boxes ``low + (high - low) *
+    sigmoid(raw + box_grid_bias)`` (``BOX_RANGE``); raw = 0 gives each patch's own cell."""
+    low, high = (jnp.asarray(v, jnp.float32) for v in BOX_RANGE)
+    return low + (high - low) * jax.nn.sigmoid(raw.astype(jnp.float32)
+                                               + box_grid_bias(grid_h, grid_w))
+
+
 def box_grid_bias(grid_h: int, grid_w: int) -> Array:
     """[gh * gw, 4] inverse-sigmoid box prior (cx, cy, w, h) of each patch, row-major.
 
     Patch (i, j) gets centre ((j + 0.5) / gw, (i + 0.5) / gh) and size (1 / gw, 1 / gh) in
-    normalised image coordinates; the bias is the logit of those numbers.
+    normalised image coordinates; the bias is the logit of those numbers mapped from
+    ``BOX_RANGE`` to (0, 1), so :func:`decode_boxes` of 0 is the patch's cell.
     """
     y, x = np.mgrid[:grid_h, :grid_w].astype(np.float64)
     cx = (x.reshape(-1) + 0.5) / grid_w
     cy = (y.reshape(-1) + 0.5) / grid_h
     w = np.full_like(cx, 1.0 / grid_w)
     h = np.full_like(cy, 1.0 / grid_h)
-    prior = np.stack([cx, cy, w, h], -1)
+    low, high = BOX_RANGE
+    prior = (np.stack([cx, cy, w, h], -1) - low) / (high - low)
     return jnp.asarray(np.log(prior) - np.log1p(-prior), jnp.float32)
 
 

@@ -4,6 +4,14 @@
 of templates at rotations covering SO(3). Training (``datagen``) and inference onboarding both
 render them with :func:`render_object_views`, so the two see identical images.
 
+**One size, one anti-aliasing rule** (issue 13 item 1.3). Renders are made at the detector's
+``render_size`` and never resized afterwards: training banks are packed at that size
+(``python -m datagen.pack --bank-size``, checked by the training input) and inference
+onboarding renders at it. Every render is anti-aliased the same way whatever the backend:
+rendered at ``SUPERSAMPLE`` x the size (the bank camera of the larger size) and box-averaged
+over ``SUPERSAMPLE`` x ``SUPERSAMPLE`` blocks, 9 samples per pixel, so the JAX rasterizer (one
+sample per pixel) gives smooth edges like Mitsuba's.
+
 The camera is the render-bank camera of :mod:`threept_jax.data.banks`: an object-centred view
 from ``DISTANCE_FACTOR`` bounding-sphere radii, with a focal length that makes the sphere span
 ``FILL`` of the image side (``banks.render_camera``), and poses ``T_cam_obj = [R | (0, 0, d) -
@@ -43,6 +51,8 @@ BANK_MAX_FACES = 20000
 CPU_FACE_VIEWS = 32768
 #: Views per rasterizer call on accelerators and for the Mitsuba backend.
 DEVICE_CHUNK = 64
+#: Anti-aliasing: renders are made at this many times the output side and box-averaged.
+SUPERSAMPLE = 3
 
 
 def render_chunk(renderer: Renderer) -> int:
@@ -96,7 +106,11 @@ def render_object_views(
         mesh bucket and image size whatever N is, and memory stays bounded.
       ambient: ambient term of the headlight shading.
 
-    Background pixels are 0. Colours are ``round(255 * rgb)``.
+    Background pixels are 0. Colours are ``round(255 * rgb)`` of the mean of the
+    ``SUPERSAMPLE`` x ``SUPERSAMPLE`` samples of each pixel (module docstring): the render at
+    ``SUPERSAMPLE`` x (h, w) with the bank camera of that size, whose pixel blocks average to
+    the pixels of the (h, w) bank camera exactly (same focal length per output pixel, same
+    principal point).
     """
     R = np.asarray(rotations, np.float64)
     if R.ndim != 3 or R.shape[1:] != (3, 3):
@@ -108,7 +122,8 @@ def render_object_views(
     chunk = render_chunk(renderer) if chunk is None else int(chunk)
     if sphere is None:
         sphere = banks.bounding_sphere(np.asarray(_mesh_of(renderer, mesh).vertices, np.float64))
-    K, distance = banks.render_camera((h, w), float(sphere[1]))
+    s = SUPERSAMPLE
+    K, distance = banks.render_camera((s * h, s * w), float(sphere[1]))
     T = banks.render_pose(R, np.asarray(sphere[0], np.float64), distance)
     n = len(T)
     out = np.zeros((n, h, w, 3), np.uint8)
@@ -117,9 +132,9 @@ def render_object_views(
         k = len(part)
         if k < chunk:  # pad with copies so every call has the same shape
             part = np.concatenate([part, np.repeat(part[-1:], chunk - k, 0)])
-        rgb = renderer.render(part.astype(np.float32), K.astype(np.float32), (h, w), ("rgb",),
-                              ambient=ambient)["rgb"]
-        rgb = np.asarray(rgb, np.float32)[:k]
+        rgb = renderer.render(part.astype(np.float32), K.astype(np.float32), (s * h, s * w),
+                              ("rgb",), ambient=ambient)["rgb"]
+        rgb = np.asarray(rgb, np.float32)[:k].reshape(k, h, s, w, s, 3).mean((2, 4))
         out[start : start + k] = np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
     return out
 
