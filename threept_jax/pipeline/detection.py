@@ -38,6 +38,21 @@ Array = jax.Array
 SCORE_MODES = ("product", "presence", "template")
 #: The score inference uses (``infer.detect.SceneDetector``).
 DEFAULT_SCORE_MODE = "product"
+#: Model points kept per object for fitting boxes (object generation).
+NUM_POINTS = 1024
+
+
+def model_points(vertices: np.ndarray, n: int = NUM_POINTS) -> np.ndarray:
+    """[n, 3] float32 points of a mesh's vertices [N, 3] for object generation: all vertices
+    (the first repeated up to ``n``) or a fixed random subset that keeps the extreme vertices
+    of each axis, which decide the boxes."""
+    v = np.asarray(vertices, np.float32)
+    if len(v) <= n:
+        return np.concatenate([v, np.repeat(v[:1], n - len(v), 0)])  # duplicates are harmless
+    idx = np.random.default_rng(0).choice(len(v), n, replace=False)
+    extremes = np.concatenate([np.argmin(v, 0), np.argmax(v, 0)])
+    idx[: len(extremes)] = extremes
+    return v[idx]
 
 
 def detection_scores(presence_logits: Array, detection_logits: Array, mode: str) -> Array:
