@@ -72,7 +72,7 @@ from threept_jax.pipeline.detection import (
     ObjectQueries,
     model_points,
 )
-from threept_jax.render import load_mesh
+from threept_jax.render.mesh import read_trimesh
 from train import sharding
 from train.run_config import example_config, model_config
 
@@ -156,7 +156,8 @@ def read_held_out_images(records_dir, num_images: int) -> list[HeldOutImage]:
 
 def object_meshes(records_dir, obj_ids: Sequence[int]) -> dict[int, pathlib.Path] | None:
     """obj_id -> mesh file of each of ``obj_ids`` from ``objects.json``'s ``mesh`` entries
-    (``datagen.pack`` writes them, relative to the records folder), or None when one lacks it."""
+    (``datagen.pack`` writes them, relative to the records folder, in mm as BOP models are),
+    or None when one lacks it."""
     path = pathlib.Path(records_dir) / "objects.json"
     raw = json.loads(path.read_text())
     out = {}
@@ -256,7 +257,7 @@ class DetectorEvaluator:
                 f"{config.data_dir}/objects.json gives no mesh for some val objects (datagen.pack "
                 "writes them); the evaluation reports no 6D AP", stacklevel=2)
         self.models = None if meshes is None else {
-            o: prepare_model(points=load_mesh(path, models_info=None).vertices,
+            o: prepare_model(points=np.asarray(read_trimesh(path).vertices),
                              symmetries=self.banks.entry(o).symmetries,
                              diameter=self.banks.entry(o).diameter)
             for o, path in meshes.items()}
