@@ -5,7 +5,8 @@ object in every tile (early fusion), keeps each object's best candidates, merges
 one NMS across tiles, scales and objects, and turns every kept detection into an object with K
 pose hypotheses (top templates at least 45 degrees apart, turned by the box ray, translation
 fitted to the box). Tiling, the detector, NMS and object generation are one jitted function per
-image size, so repeated calls on a camera's images never recompile.
+image size (:class:`threept_jax.pipeline.detection.FullImageDetector`, the same path the training
+evaluation runs), so repeated calls on a camera's images never recompile.
 """
 
 from __future__ import annotations
@@ -19,12 +20,16 @@ import numpy as np
 from flax import nnx
 
 from infer.onboarding import OnboardedObject
-from threept_jax.geometry.boxes import nms
 from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.models.configs import DetectorConfig
-from threept_jax.models.detector import Detector, orientation_scores, patch_scores
+from threept_jax.models.detector import Detector
 from threept_jax.pipeline import pan_and_scan as pns
-from threept_jax.pipeline.object_generation import single_view_hypotheses
+from threept_jax.pipeline.detection import (
+    DEFAULT_SCORE_MODE,
+    DetectionSettings,
+    FullImageDetector,
+    ObjectQueries,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,7 +71,8 @@ class Detections(list):
 
 
 class SceneDetector:
-    """Detects onboarded objects in images (module docstring)."""
+    """Detects onboarded objects in images (module docstring); the detection itself is
+    :class:`threept_jax.pipeline.detection.FullImageDetector`, the path training evaluates."""
 
     def __init__(self, model: Detector, config: DetectorConfig, objects: Sequence[OnboardedObject],
                  *, num_scales: int = 3, scales: Sequence[float] | None = None,
@@ -80,69 +86,30 @@ class SceneDetector:
             raise ValueError(f"objects were onboarded with different template counts {sorted(t)}")
         self.config = config
         self.objects = list(objects)
-        self.num_scales = num_scales
-        self.scales = None if scales is None else tuple(float(s) for s in scales)
-        self.score_threshold = float(score_threshold)
-        self.nms_iou = float(nms_iou)
-        self.max_detections = int(max_detections)
-        self.candidates = int(candidates_per_object)
-        self.num_hypotheses = int(num_hypotheses)
-        self.min_angle_deg = float(min_angle_deg)
         self.logit_scale = float(model.logit_scale)
-        self._graphdef, self._params = nnx.split(model)
-        self._prior = jnp.asarray(np.stack([x.prior_tokens for x in self.objects]))
-        self._bank = jnp.asarray(np.stack([x.template_bank for x in self.objects]))
-        self._points = jnp.asarray(np.stack([x.points for x in self.objects]))
-        self._rotations = jnp.asarray(self.objects[0].template_rotations)
-        self._steps: dict[tuple[int, int], object] = {}
+        settings = DetectionSettings(
+            score_threshold=float(score_threshold), nms_iou=float(nms_iou),
+            max_detections=int(max_detections), candidates_per_object=int(candidates_per_object),
+            num_hypotheses=int(num_hypotheses), min_angle_deg=float(min_angle_deg))
+        graphdef, self._params = nnx.split(model)
+        self._core = FullImageDetector(graphdef, config.image_size, settings,
+                                       num_scales=num_scales, scales=scales)
+        self._queries = ObjectQueries(
+            prior_tokens=jnp.asarray(np.stack([x.prior_tokens for x in self.objects])),
+            template_bank=jnp.asarray(np.stack([x.template_bank for x in self.objects])),
+            template_rotations=jnp.asarray(self.objects[0].template_rotations),
+            points=jnp.asarray(np.stack([x.points for x in self.objects])))
+
+    @property
+    def score_threshold(self) -> float:
+        return self._core.settings.score_threshold
 
     def layout(self, image_hw: tuple[int, int]) -> pns.TileLayout:
-        tile = self.config.image_size
-        scales = self.scales or pns.geometric_scales(image_hw, tile, self.num_scales)
-        return pns.tile_layout(image_hw, tile, scales)
+        return self._core.layout(image_hw)
 
     def _compiled(self, image_hw: tuple[int, int]):
         """The jitted detection function for one image size, built once per detector."""
-        if image_hw not in self._steps:
-            self._steps[image_hw] = self._build(image_hw)
-        return self._steps[image_hw]
-
-    def _build(self, image_hw: tuple[int, int]):
-        layout = self.layout(image_hw)
-        graphdef, cand, max_det = self._graphdef, self.candidates, self.max_detections
-        k, min_angle = self.num_hypotheses, self.min_angle_deg
-        thr, iou = self.score_threshold, self.nms_iou
-
-        def per_object(params, tiles, prior, bank):
-            model = nnx.merge(graphdef, params)
-            n = tiles.shape[0]
-            out = model(tiles, jnp.broadcast_to(prior, (n, *prior.shape)), bank)
-            scores = patch_scores(out["presence_logits"], out["detection_logits"])  # [N, P]
-            boxes = pns.tile_boxes_to_image(out["boxes"], layout)  # [N, P, 4]
-            scores = jnp.where(pns.interior_edge_mask(out["boxes"], layout), -jnp.inf, scores)
-            top_scores, top = jax.lax.top_k(scores.reshape(-1), min(cand, scores.size))
-            return boxes.reshape(-1, 4)[top], top_scores, out["embeddings"].reshape(
-                -1, out["embeddings"].shape[-1])[top]
-
-        def run(params, image, K, prior_all, bank_all, points_all, rotations):
-            tiles = pns.extract_tiles(image, layout)
-            boxes, scores, emb = jax.lax.map(
-                lambda x: per_object(params, tiles, x[0], x[1]), (prior_all, bank_all))
-            c = scores.shape[1]  # scores [O, C]
-            keep, ok = nms(boxes.reshape(-1, 4), scores.reshape(-1), iou, max_det, thr)
-            obj = keep // c
-            det_boxes = boxes.reshape(-1, 4)[keep]
-            det_emb = emb.reshape(-1, emb.shape[-1])[keep]
-            tmpl = orientation_scores(det_emb[:, None], bank_all[obj])[:, 0]  # [D, T]
-            poses, pose_scores, _ = jax.vmap(
-                lambda b, s, p: single_view_hypotheses(b, K, s, rotations, p, k, min_angle))(
-                    det_boxes, tmpl, points_all[obj])
-            return {"boxes": det_boxes, "scores": scores.reshape(-1)[keep], "valid": ok,
-                    "best_score": jnp.max(scores),
-                    "object": obj, "poses": poses, "pose_scores": pose_scores,
-                    "template_scores": tmpl}
-
-        return jax.jit(run)
+        return self._core.compiled(image_hw)
 
     def detect(self, image: np.ndarray, K: np.ndarray) -> Detections:
         """Detections in one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3] (pixels of
@@ -155,8 +122,7 @@ class SceneDetector:
                              "(x * 255).round().astype(np.uint8) for float images in [0, 1])")
         hw = image.shape[:2]
         K = validate_intrinsics(K, "K", image_hw=hw).astype(np.float32)
-        out = self._compiled(hw)(self._params, image, K, self._prior, self._bank, self._points,
-                                 self._rotations)
+        out = self._core(self._params, image, K, self._queries)[DEFAULT_SCORE_MODE]
         out = jax.tree.map(np.asarray, out)
         dets = Detections(best_score=out["best_score"])
         for i in np.flatnonzero(out["valid"]):

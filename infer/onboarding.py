@@ -40,11 +40,10 @@ from threept_jax.data.files import atomic_savez
 from threept_jax.geometry.grids import prior_view_rotations, super_fibonacci_rotations
 from threept_jax.models.configs import DetectorConfig
 from threept_jax.models.detector import Detector
+from threept_jax.pipeline.detection import model_points
 from threept_jax.pipeline.onboarding import BankRenderer
 from threept_jax.render import Mesh, load_mesh, prepare_mesh
 
-#: Model points kept per object for fitting boxes (object generation).
-NUM_POINTS = 1024
 #: Face budget of the mesh kept for rendering overlays and masks.
 RENDER_FACES = 4096
 
@@ -87,17 +86,6 @@ class OnboardedObject:
     template_rotations: np.ndarray
     symmetries: np.ndarray
     center: np.ndarray
-
-
-def _points(mesh: Mesh, n: int = NUM_POINTS) -> np.ndarray:
-    v = np.asarray(mesh.vertices, np.float32)
-    if len(v) <= n:
-        return np.concatenate([v, np.repeat(v[:1], n - len(v), 0)])  # duplicates are harmless
-    idx = np.random.default_rng(0).choice(len(v), n, replace=False)
-    # The extreme vertices decide boxes: always keep them.
-    extremes = np.concatenate([np.argmin(v, 0), np.argmax(v, 0)])
-    idx[: len(extremes)] = extremes
-    return v[idx]
 
 
 class Onboarder:
@@ -209,7 +197,7 @@ class Onboarder:
         render_mesh = model if model.num_faces <= RENDER_FACES else prepare_mesh(
             model, max_faces=RENDER_FACES)
         return OnboardedObject(int(obj_id), model.name, render_mesh, float(model.diameter),
-                               _points(model), prior, bank, np.asarray(rotations, np.float32),
+                               model_points(model.vertices), prior, bank, np.asarray(rotations, np.float32),
                                np.asarray(symmetries, np.float32), np.asarray(center, np.float32))
 
     def onboard_all(self, meshes: Mapping[int, str | os.PathLike | Mesh], units: str = "mm",

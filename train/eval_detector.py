@@ -1,20 +1,37 @@
-"""Periodic evaluation of 3PT-D on held-out tiles (val split: meshes training never saw).
+"""Periodic evaluation of 3PT-D on held-out data (val split: meshes training never saw).
 
-Each evaluation example is one tile of a val record queried with one object (the same
-:class:`~threept_jax.data.detector_input.SampleTile` as training, with its own fixed seed, no
-photometric augmentation, and negative queries at the training rate), so the set is the
-same at every evaluation. For each val object the prior tokens and the template bank
-(``eval.num_templates`` templates of its render bank, all by default) are embedded once per
-evaluation. Per tile the detector's patches are scored with ``patch_scores`` (presence x best
-template match), decoded with ``boxes_to_pixels`` and reduced by NMS to
+**Full images (the headline and the best-checkpoint metric).** The first ``eval.num_images``
+val records are detected the way inference detects them
+(:class:`threept_jax.pipeline.detection.FullImageDetector`: pan-and-scan at
+``eval.num_scales`` geometric scales, every val object queried in every tile, one NMS across
+tiles, scales and objects, ``eval.max_detections`` per image, no score threshold), with each
+val object's prior tokens and template bank (``eval.num_templates`` templates of its render
+bank, all by default) embedded once per evaluation. Metrics:
+
+* ``eval/ap``, ``eval/ap50``, ``eval/ap75``: COCO box AP with the BOP ignore rule
+  (:func:`threept_jax.eval.coco.evaluate_coco`) of the inference score
+  (``detection.DEFAULT_SCORE_MODE``); ground truth: every instance with a visible pixel, its
+  amodal box, ignored under 10 % visible; categories: the val objects.
+* ``eval/ap50_<mode>`` for each score mode of ``detection.SCORE_MODES`` (``product``:
+  presence x best template match, ``presence``, ``template``: the best template match alone),
+  from the same forward pass.
+* ``eval/bop6d_ap``, ``eval/bop6d_ap_mssd``, ``eval/bop6d_ap_mspd``: BOP 6D detection AP
+  (:func:`threept_jax.eval.bop6d.evaluate_poses`) of the best single-view hypothesis of each
+  detection (object generation alone, no refinement), when ``objects.json`` gives every val
+  object's mesh (``datagen.pack`` writes it); otherwise they are left out with a warning.
+* ``eval/num_images``, ``eval/num_gt`` (GT counted, not ignored).
+
+**Tiles (a diagnostic, never the headline).** ``eval/tile_diagnostic/...``: ``eval.num_examples``
+val tiles cut as for training (:class:`~threept_jax.data.detector_input.SampleTile`, each crop
+anchored on a ground-truth instance at the training scale, each tile queried with one
+object, a fixed seed, no photometric augmentation), so they say how the model does where
+training puts objects, not how it finds them. Per tile the patches are scored with
+``patch_scores``, decoded with ``boxes_to_pixels`` and reduced by NMS to
 ``eval.max_detections``; each kept detection carries its top template.
 
-Metrics (``eval/...``):
-
-* ``ap``, ``ap50``, ``ap75``: COCO box AP with the BOP ignore rule
-  (:func:`threept_jax.eval.coco.evaluate_coco`), every tile an image whose ground truth is the
-  queried object's instances in it (those under ``data.min_target_visib`` visible are
-  ignored), categories = object ids.
+* ``ap``, ``ap50``, ``ap75``: COCO box AP with the BOP ignore rule, every tile an image whose
+  ground truth is the queried object's instances in it (those under ``data.min_target_visib``
+  visible are ignored), categories = object ids.
 * ``orientation_acc``: among detections matched one-to-one to a ground truth at IoU >=
   ``eval.match_iou`` (greedy by score), the share whose top template is within
   ``eval.orientation_threshold_deg`` (15) degrees of the object-centred ground-truth rotation
@@ -25,7 +42,11 @@ Metrics (``eval/...``):
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import dataclasses
+import json
+import pathlib
+import warnings
+from collections.abc import Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -33,15 +54,30 @@ import ml_collections
 import numpy as np
 from flax import nnx
 
+from threept_jax.data import records
 from threept_jax.data.banks import BankFile, ObjectEntry, resize_renders
-from threept_jax.data.bop import Detection2D
-from threept_jax.data.detector_input import BankCache, detection_dataset
+from threept_jax.data.bop import Detection2D, GtInfo, GtInstance, PoseEstimate, Target
+from threept_jax.data.detector_input import BankCache, detection_dataset, find_shards
+from threept_jax.eval.bop6d import ImageGt, evaluate_poses
 from threept_jax.eval.coco import evaluate_coco
+from threept_jax.eval.pose_error import PreparedModel, prepare_model
 from threept_jax.geometry.boxes import box_iou, nms
 from threept_jax.geometry.symmetry import symmetric_angle_deg
 from threept_jax.models.detector import boxes_to_pixels, orientation_scores, patch_scores
+from threept_jax.pipeline.detection import (
+    DEFAULT_SCORE_MODE,
+    SCORE_MODES,
+    DetectionSettings,
+    FullImageDetector,
+    ObjectQueries,
+    model_points,
+)
+from threept_jax.render.mesh import read_trimesh
 from train import sharding
 from train.run_config import example_config, model_config
+
+#: Prefix of the tile metrics (a diagnostic: crops anchored on an instance at training scale).
+TILE_PREFIX = "eval/tile_diagnostic/"
 
 #: Eval batch fields sent to the device (and returned, so hosts see them in global order).
 EVAL_FIELDS = ("image", "obj_index", "boxes", "mask", "ignore", "rotations", "valid")
@@ -65,8 +101,126 @@ def greedy_match(det_boxes: np.ndarray, det_scores: np.ndarray, gt_boxes: np.nda
     return match
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class HeldOutImage:
+    """One full val image and its ground truth, keyed (0, record index) in the evaluators.
+
+    ``coco_gt``: annotations of :func:`threept_jax.eval.coco.evaluate_coco` (instances with a
+    visible pixel: amodal box, visible area, ``bop_ignore`` under 10 % visible); ``pose_gt``:
+    :class:`~threept_jax.eval.bop6d.ImageGt` (every instance)."""
+
+    key: tuple[int, int]
+    rgb: np.ndarray
+    K: np.ndarray
+    coco_gt: list[dict]
+    pose_gt: ImageGt
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height)."""
+        return int(self.rgb.shape[1]), int(self.rgb.shape[0])
+
+
+def held_out_image(example: Mapping[str, np.ndarray], index: int) -> HeldOutImage:
+    """A :class:`HeldOutImage` from a decoded record (``threept_jax.data.records``)."""
+    obj_ids = np.asarray(example["obj_id"]).reshape(-1)
+    m = len(obj_ids)
+    px_visib = np.bincount(np.asarray(example["instances"]).ravel(), minlength=m + 1)[1:m + 1]
+    coco_gt, gts, infos = [], [], []
+    for i in range(m):
+        x0, y0, x1, y1 = (float(v) for v in example["bbox_obj"][i])
+        v0, v1, v2, v3 = (float(v) for v in example["bbox_visib"][i])
+        visib = float(example["visib_fract"][i])
+        if px_visib[i] >= 1:
+            coco_gt.append({"category_id": int(obj_ids[i]), "iscrowd": 0,
+                            "area": float(px_visib[i]), "bbox": [x0, y0, x1 - x0, y1 - y0],
+                            "bop_ignore": int(visib < 0.1)})
+        gts.append(GtInstance(int(obj_ids[i]), np.asarray(example["T_cam_obj"][i], np.float64)))
+        infos.append(GtInfo((round(x0), round(y0), round(x1 - x0), round(y1 - y0)),
+                            (round(v0), round(v1), round(v2 - v0), round(v3 - v1)),
+                            0, 0, int(px_visib[i]), visib))
+    rgb = np.asarray(example["rgb"])
+    K = np.asarray(example["K"], np.float64)
+    return HeldOutImage((0, int(index)), rgb, K, coco_gt,
+                        ImageGt(K, int(rgb.shape[1]), gts, infos))
+
+
+def read_held_out_images(records_dir, num_images: int) -> list[HeldOutImage]:
+    """The first ``num_images`` records of ``<records_dir>/val`` (all when fewer)."""
+    from array_record.python.array_record_data_source import ArrayRecordDataSource
+
+    source = ArrayRecordDataSource(find_shards(records_dir, "val"))
+    return [held_out_image(records.decode_example(source[i]), i)
+            for i in range(min(int(num_images), len(source)))]
+
+
+def object_meshes(records_dir, obj_ids: Sequence[int]) -> dict[int, pathlib.Path] | None:
+    """obj_id -> mesh file of each of ``obj_ids`` from ``objects.json``'s ``mesh`` entries
+    (``datagen.pack`` writes them, relative to the records folder, in mm as BOP models are),
+    or None when one lacks it."""
+    path = pathlib.Path(records_dir) / "objects.json"
+    raw = json.loads(path.read_text())
+    out = {}
+    for o in obj_ids:
+        mesh = raw.get(str(int(o)), {}).get("mesh")
+        if not mesh or not (path.parent / mesh).is_file():
+            return None
+        out[int(o)] = path.parent / mesh
+    return out
+
+
+def full_image_metrics(outputs: Sequence[Mapping[str, Mapping[str, np.ndarray]]],
+                       images: Sequence[HeldOutImage], obj_ids: Sequence[int],
+                       models: Mapping[int, PreparedModel] | None = None) -> dict[str, float]:
+    """Full-image metrics of the module docstring.
+
+    ``outputs[i][mode]``: the detections of ``images[i]`` for each score mode, as
+    :func:`threept_jax.pipeline.detection.detection_function` returns them (``boxes`` [D, 4]
+    xyxy, ``scores`` [D], ``valid`` [D], ``object`` [D] index into ``obj_ids`` and, for the
+    6D AP, ``poses`` [D, K, 4, 4]). ``models``: obj_id -> prepared model, None skips 6D AP.
+    """
+    obj_ids = [int(o) for o in obj_ids]
+    order = [im.key for im in images]
+    gt = {im.key: im.coco_gt for im in images}
+    sizes = {im.key: im.size for im in images}
+    metrics: dict[str, float] = {}
+    modes = list(outputs[0]) if outputs else [DEFAULT_SCORE_MODE]
+    for mode in modes:
+        dets = []
+        for im, out in zip(images, outputs, strict=True):
+            o = out[mode]
+            for i in np.flatnonzero(o["valid"]):
+                x0, y0, x1, y1 = (float(v) for v in o["boxes"][i])
+                dets.append(Detection2D(*im.key, obj_ids[int(o["object"][i])],
+                                        float(o["scores"][i]), bbox=(x0, y0, x1 - x0, y1 - y0)))
+        coco = evaluate_coco(dets, gt, sizes, order, obj_ids, iou_types=("bbox",)).get(
+            "bbox", {"ap": 0.0, "ap50": 0.0, "ap75": 0.0})
+        metrics[f"eval/ap50_{mode}"] = coco["ap50"]
+        if mode == DEFAULT_SCORE_MODE:
+            metrics.update({"eval/ap": coco["ap"], "eval/ap50": coco["ap50"],
+                            "eval/ap75": coco["ap75"]})
+    metrics["eval/num_images"] = float(len(images))
+    metrics["eval/num_gt"] = float(sum(1 for im in images for a in im.coco_gt
+                                       if not a["bop_ignore"] and a["category_id"] in obj_ids))
+    if models is not None:
+        estimates, targets = [], []
+        for im, out in zip(images, outputs, strict=True):
+            o = out[DEFAULT_SCORE_MODE]
+            for i in np.flatnonzero(o["valid"]):
+                T = np.asarray(o["poses"][i][0], np.float64)
+                estimates.append(PoseEstimate(*im.key, obj_ids[int(o["object"][i])],
+                                              float(o["scores"][i]), T[:3, :3], T[:3, 3]))
+            targets += [Target(*im.key, obj, sum(g.obj_id == obj for g in im.pose_gt.gts))
+                        for obj in dict.fromkeys(g.obj_id for g in im.pose_gt.gts)]
+        scores = evaluate_poses(estimates, {im.key: im.pose_gt for im in images}, models,
+                                targets, compute_ar=False)
+        metrics.update({"eval/bop6d_ap": scores.ap, "eval/bop6d_ap_mssd": scores.ap_mssd,
+                        "eval/bop6d_ap_mspd": scores.ap_mspd})
+    return metrics
+
+
 class DetectorEvaluator:
-    """``evaluator(params) -> metrics`` on a fixed set of val tiles (module docstring)."""
+    """``evaluator(params) -> metrics`` on fixed val images and tiles (module docstring)."""
 
     def __init__(self, config: ml_collections.ConfigDict, graphdef: nnx.GraphDef,
                  mesh: jax.sharding.Mesh, table: Mapping[int, ObjectEntry]):
@@ -96,6 +250,27 @@ class DetectorEvaluator:
             process_index=jax.process_index(), process_count=jax.process_count(), table=table)
         self.template_ids = self._template_subset()
         self._build_functions()
+        self.images = read_held_out_images(config.data_dir, int(e.num_images))
+        meshes = object_meshes(config.data_dir, self.obj_ids)
+        if meshes is None:
+            warnings.warn(
+                f"{config.data_dir}/objects.json gives no mesh for some val objects (datagen.pack "
+                "writes them); the evaluation reports no 6D AP", stacklevel=2)
+        self.models = None if meshes is None else {
+            o: prepare_model(points=np.asarray(read_trimesh(path).vertices),
+                             symmetries=self.banks.entry(o).symmetries,
+                             diameter=self.banks.entry(o).diameter)
+            for o, path in meshes.items()}
+        self._points = None if meshes is None else jnp.stack(
+            [model_points(m.points) for m in self.models.values()])
+        self.image_detector = FullImageDetector(
+            graphdef, self.tile, DetectionSettings(
+                score_threshold=0.0, nms_iou=float(e.nms_iou),
+                max_detections=int(e.max_detections),
+                candidates_per_object=int(e.candidates_per_object), num_hypotheses=1,
+                score_modes=SCORE_MODES, generate_objects=meshes is not None),
+            num_scales=int(e.num_scales),
+            jit_kwargs={"out_shardings": sharding.replicated(mesh)})
 
     def _template_subset(self) -> dict[int, np.ndarray]:
         """Template indices evaluated per object: all, or a fixed random subset."""
@@ -186,17 +361,36 @@ class DetectorEvaluator:
 
     def __call__(self, params) -> dict[str, float]:
         e = self.config.eval
-        return compute_metrics(
-            self.detections(params), self.obj_ids,
+        banks = self._object_banks(params)
+        metrics = full_image_metrics(self.image_detections(params, banks), self.images,
+                                     self.obj_ids, self.models)
+        return metrics | compute_metrics(
+            self.detections(params, banks), self.obj_ids,
             {int(o): self.banks.get(int(o)).template_rotations[t]
              for o, t in self.template_ids.items()},
             {int(o): self.banks.get(int(o)).symmetries for o in self.obj_ids}, self.tile,
             float(e.orientation_threshold_deg), float(e.match_iou))
 
-    def detections(self, params) -> dict[str, np.ndarray]:
+    def image_detections(self, params, banks=None) -> list[dict[str, dict[str, np.ndarray]]]:
+        """Per held-out image, the detections of each score mode (``full_image_metrics``'s
+        ``outputs``), on every process. ``banks``: ``_object_banks(params)`` when known."""
+        prior_all, bank_all = self._object_banks(params) if banks is None else banks
+        rep = sharding.replicated(self.mesh)
+        rotations = np.stack([self.banks.get(int(o)).template_rotations[self.template_ids[int(o)]]
+                              for o in self.obj_ids])
+        queries = ObjectQueries(prior_all, bank_all, _replicate(rotations, rep),
+                                None if self._points is None else _replicate(self._points, rep))
+        out = []
+        for im in self.images:
+            res = self.image_detector(params, _replicate(im.rgb, rep),
+                                      _replicate(im.K.astype(np.float32), rep), queries)
+            out.append(jax.tree.map(lambda x: np.asarray(x.addressable_data(0)), res))
+        return out
+
+    def detections(self, params, banks=None) -> dict[str, np.ndarray]:
         """Kept detections and ground truth of every evaluated tile (``compute_metrics``'s
-        ``res``), gathered on every process."""
-        prior_all, bank_all = self._object_banks(params)
+        ``res``), gathered on every process. ``banks``: ``_object_banks(params)`` when known."""
+        prior_all, bank_all = self._object_banks(params) if banks is None else banks
         outputs = []
         for local in self._local_batches():
             batch = sharding.global_batch(local, self.mesh)
@@ -206,11 +400,17 @@ class DetectorEvaluator:
         return {k: np.concatenate([o[k] for o in outputs]) for k in outputs[0]}
 
 
+def _replicate(x, rep: jax.sharding.NamedSharding) -> jax.Array:
+    """A host array (the same on every process) as a global array replicated over the mesh."""
+    return jax.make_array_from_process_local_data(rep, np.asarray(x))
+
+
 def compute_metrics(res: Mapping[str, np.ndarray], obj_ids: np.ndarray,
                     template_rotations: Mapping[int, np.ndarray],
                     symmetries: Mapping[int, np.ndarray], tile: int, threshold_deg: float,
                     match_iou: float) -> dict[str, float]:
-    """Metrics of the module docstring from gathered per-tile results.
+    """Tile metrics of the module docstring (``eval/tile_diagnostic/...``) from gathered
+    per-tile results.
 
     ``res`` holds, for N tiles with K kept detections and M padded targets:
     ``det_boxes`` [N, K, 4] (xyxy tile pixels), ``det_scores`` [N, K], ``det_valid`` [N, K],
@@ -258,9 +458,10 @@ def compute_metrics(res: Mapping[str, np.ndarray], obj_ids: np.ndarray,
     coco = evaluate_coco(detections, gt, sizes, order, [int(o) for o in obj_ids],
                          iou_types=("bbox",)).get("bbox", {"ap": 0.0, "ap50": 0.0,
                                                            "ap75": 0.0})
-    return {
-        "eval/ap": coco["ap"], "eval/ap50": coco["ap50"], "eval/ap75": coco["ap75"],
-        "eval/orientation_acc": correct / matched if matched else 0.0,
-        "eval/orientation_oracle": oracle / matched if matched else 0.0,
-        "eval/num_gt": float(num_gt), "eval/num_matched": float(matched),
+    metrics = {
+        "ap": coco["ap"], "ap50": coco["ap50"], "ap75": coco["ap75"],
+        "orientation_acc": correct / matched if matched else 0.0,
+        "orientation_oracle": oracle / matched if matched else 0.0,
+        "num_gt": float(num_gt), "num_matched": float(matched),
     }
+    return {TILE_PREFIX + k: v for k, v in metrics.items()}

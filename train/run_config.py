@@ -94,11 +94,14 @@ class EvalConfig:
     """Periodic held-out evaluation (``train/eval_detector.py``)."""
 
     every_steps: int = 500  # 0: no periodic evaluation
+    num_images: int = 16  # full val images detected as inference does (the headline metrics)
+    num_scales: int = 3  # pan-and-scan scales of the full-image evaluation
+    candidates_per_object: int = 64  # patches per object kept before the full-image NMS
     num_examples: int = 256  # tiles from the val split (each queried with one object)
     batch_size: int = 16
     num_templates: int = -1  # templates of the bank used for orientation (-1: all)
     template_chunk: int = 256  # templates embedded per chunk when building the banks
-    max_detections: int = 20
+    max_detections: int = 20  # per tile and per full image
     nms_iou: float = 0.5
     orientation_threshold_deg: float = 15.0
     match_iou: float = 0.5
@@ -112,7 +115,7 @@ class CheckpointConfig:
 
     every_steps: int = 500
     max_to_keep: int = 3
-    best_metric: str = "eval/ap50"
+    best_metric: str = "eval/ap50"  # full-image box AP50 (train/eval_detector.py)
     best_mode: str = "max"
     async_save: bool = True
 
@@ -253,6 +256,9 @@ VALUE_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "optim.weight_decay": _number_in(0, lo_open=False),
     "optim.grad_clip_norm": _number_in(0, lo_open=True),
     "eval.every_steps": _int_at_least(0),
+    "eval.num_images": _int_at_least(1),
+    "eval.num_scales": _int_at_least(1),
+    "eval.candidates_per_object": _int_at_least(1),
     "eval.num_examples": _int_at_least(1),
     "eval.batch_size": _int_at_least(1),
     "eval.num_templates": _int_at_least(1, or_minus_one=True),

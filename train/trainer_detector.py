@@ -26,7 +26,9 @@ and runs it to ``config.total_steps``:
   iterator; the run resumes from the latest one in ``workdir``, refusing a config that changes
   what the run computes (:func:`train.run_config.check_resume_config`; every change of a
   resume is kept in ``config_history.json``).
-* **Evaluation** (:mod:`train.eval_detector`) every ``eval.every_steps`` and at the end.
+* **Evaluation** (:mod:`train.eval_detector`) every ``eval.every_steps`` and at the end: full
+  held-out images detected as inference does (``eval/ap50`` ranks the checkpoints by default,
+  ``checkpoint.best_metric``), and the tile diagnostic (``eval/tile_diagnostic/...``).
 * **Logs** (:mod:`train.logging_utils`): loss terms, learning rate, grad/param norms,
   examples/s to TensorBoard (``<workdir>/tb``) and the console, and a progress bar.
 """

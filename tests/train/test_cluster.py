@@ -262,6 +262,9 @@ def test_no_import_cycle_and_train_infer_apart():
     assert not {m for m in _imports(ROOT / "train" / "eval_detector.py")
                 if m.startswith("train.trainer_detector")}
     assert not {m for m in _imports(ROOT / "train" / "run_config.py") if m.startswith("train")}
+    # The evaluation runs inference's detection through threept_jax.pipeline, not infer.
+    for path in (ROOT / "train").rglob("*.py"):
+        assert not {m for m in _imports(path) if m == "infer" or m.startswith("infer.")}, path
     infer_imports = _imports(ROOT / "infer" / "checkpoint.py")
     assert not {m for m in infer_imports if m == "train" or m.startswith("train.")}
     assert "threept_jax.data.run_dir" in infer_imports

@@ -99,6 +99,15 @@ def test_one_device_and_four_devices_agree_and_compile_once(toy, tmp_path):
         np.testing.assert_allclose(r4[k], r1[k], rtol=1e-4, atol=1e-4, err_msg=k)
     for k in ("det_valid", "gt_mask", "gt_obj_index"):
         np.testing.assert_array_equal(r4[k], r1[k], err_msg=k)
+    # And the full-image detections (pan-and-scan over all val objects).
+    i1, i4 = (t.evaluator.image_detections(t.state["params"]) for t in (one, four))
+    assert len(i1) == 6 and any(o["product"]["valid"].any() for o in i1)
+    for a, b in zip(i1, i4, strict=True):
+        for mode in a:
+            np.testing.assert_allclose(b[mode]["scores"], a[mode]["scores"], rtol=1e-4,
+                                       atol=1e-6, err_msg=mode)
+            np.testing.assert_allclose(b[mode]["boxes"], a[mode]["boxes"], atol=1e-3,
+                                       err_msg=mode)
     # The parameters moved, and each step function was traced (compiled) once for two steps.
     assert one.step == 2 and four.step == 2
     assert one.compiled.trace_counter[0] - c1 <= 1 and four.compiled.trace_counter[0] - c4 <= 1
@@ -126,8 +135,9 @@ def test_kill_and_resume_in_process(toy, tmp_path, monkeypatch):
                        step_cache=STEPS)
     assert sorted(full) == [1, 2, 3]
     ev = summary["eval"]
-    assert 0.0 <= ev["eval/ap50"] <= 1.0 and 0.0 <= ev["eval/orientation_acc"] <= 1.0
-    assert ev["eval/num_gt"] > 0
+    assert 0.0 <= ev["eval/ap50"] <= 1.0 and ev["eval/num_images"] == 6 and ev["eval/num_gt"] > 0
+    assert 0.0 <= ev["eval/tile_diagnostic/orientation_acc"] <= 1.0
+    assert ev["eval/tile_diagnostic/num_gt"] > 0
     assert (tmp_path / "full" / "tb").is_dir() and any((tmp_path / "full" / "tb").iterdir())
     # Interrupted run: two steps, a checkpoint, then the process "dies".
     first = td.DetectorTrainer(cfg, tmp_path / "cut", devices=jax.devices()[:1],
@@ -173,6 +183,23 @@ def test_best_checkpoint_survives_a_restart(tmp_path):
     assert steps == [2, 4]
     assert RunDir(tmp_path).best_step() == 2 and RunDir(tmp_path).checkpoint_steps() == steps
     assert saved_metrics(tmp_path, 2) == {"eval/ap50": 0.7, "eval/ap": 0.1}
+
+
+def test_best_checkpoint_is_chosen_by_the_full_image_ap50(toy, tmp_path, monkeypatch):
+    """Scripted metrics, one evaluation per step: the full-image AP50 peaks at step 2, the tile
+    diagnostic at step 1; the run keeps and picks step 2."""
+    image_ap50 = iter([0.2, 0.8, 0.5])
+    tile_ap50 = iter([0.9, 0.1, 0.5])
+    monkeypatch.setattr(eval_detector, "full_image_metrics",
+                        lambda *a, **k: {"eval/ap50": next(image_ap50)})
+    monkeypatch.setattr(eval_detector, "compute_metrics",
+                        lambda *a, **k: {"eval/tile_diagnostic/ap50": next(tile_ap50)})
+    cfg = small_config(toy, **{"eval.every_steps": 1, "checkpoint.every_steps": 1,
+                               "checkpoint.max_to_keep": 1})
+    assert cfg.checkpoint.best_metric == "eval/ap50"  # the default
+    with pytest.warns(UserWarning, match="no 6D AP"):  # the toy objects have no meshes
+        td.train(cfg, tmp_path, devices=jax.devices()[:1], step_cache=STEPS)
+    assert RunDir(tmp_path).best_step() == 2
 
 
 def test_killed_subprocess_resumes_to_the_same_batch(toy, tmp_path):
@@ -295,10 +322,11 @@ def test_metrics_on_a_hand_made_case():
               tile=64, threshold_deg=15.0, match_iou=0.5)
     m = eval_detector.compute_metrics(res, symmetries={5: np.stack([np.eye(4), flip]),
                                                        9: np.eye(4)[None]}, **kw)
-    assert m["eval/ap50"] == pytest.approx(1.0) and m["eval/ap"] == pytest.approx(1.0)
-    assert m["eval/num_gt"] == 2 and m["eval/num_matched"] == 2
-    assert m["eval/orientation_acc"] == pytest.approx(1.0)
-    assert m["eval/orientation_oracle"] == pytest.approx(1.0)
+    m = {k.removeprefix("eval/tile_diagnostic/"): v for k, v in m.items()}
+    assert m["ap50"] == pytest.approx(1.0) and m["ap"] == pytest.approx(1.0)
+    assert m["num_gt"] == 2 and m["num_matched"] == 2
+    assert m["orientation_acc"] == pytest.approx(1.0)
+    assert m["orientation_oracle"] == pytest.approx(1.0)
     m = eval_detector.compute_metrics(res, symmetries={5: np.eye(4)[None], 9: np.eye(4)[None]},
                                       **kw)
-    assert m["eval/orientation_acc"] == pytest.approx(0.5)
+    assert m["eval/tile_diagnostic/orientation_acc"] == pytest.approx(0.5)

@@ -30,6 +30,7 @@ BAD_VALUES = (
     ("optim.warmup_steps", -1), ("optim.b1", 1.0), ("optim.b2", -0.1),
     ("optim.weight_decay", -0.05), ("optim.grad_clip_norm", 0.0), ("optim.end_lr_factor", -1.0),
     ("eval.every_steps", -100), ("eval.num_examples", 0), ("eval.batch_size", 0),
+    ("eval.num_images", 0), ("eval.num_scales", 0), ("eval.candidates_per_object", 0),
     ("eval.num_templates", 0), ("eval.template_chunk", 0), ("eval.max_detections", 0),
     ("eval.nms_iou", 0.0), ("eval.nms_iou", 1.5), ("eval.match_iou", -0.5),
     ("eval.orientation_threshold_deg", 0.0), ("checkpoint.every_steps", -1),

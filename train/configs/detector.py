@@ -52,6 +52,7 @@ def get_config(arg: str = "tiny") -> ml_collections.ConfigDict:
         c.loss.matches_per_target = 4
         c.optim.warmup_steps = 30
         c.eval.every_steps = 100
+        c.eval.num_images = 8
         c.eval.num_examples = 64
         c.eval.batch_size = 8
         c.checkpoint.every_steps = 100
@@ -62,7 +63,7 @@ def get_config(arg: str = "tiny") -> ml_collections.ConfigDict:
         c.model.update(variant="S/16", image_size=512, render_size=112, remat=False)
         c.data.update(max_instances=16, num_train_templates=64, num_workers=8)
         c.optim.update(learning_rate=4e-4, warmup_steps=1000)
-        c.eval.update(every_steps=2000, num_examples=1024, batch_size=64, template_chunk=512)
+        c.eval.update(every_steps=2000, num_images=128, num_examples=1024, batch_size=64, template_chunk=512)
         c.checkpoint.every_steps = 1000
         c.log_every = 100
     elif arg == "paper":
@@ -73,7 +74,7 @@ def get_config(arg: str = "tiny") -> ml_collections.ConfigDict:
         c.data.update(max_instances=32, num_train_templates=128, max_symmetries=128,
                       num_workers=16, worker_buffer_size=4)
         c.optim.update(learning_rate=3e-4, warmup_steps=10_000, weight_decay=0.05)
-        c.eval.update(every_steps=10_000, num_examples=8192, batch_size=512,
+        c.eval.update(every_steps=10_000, num_images=1024, num_examples=8192, batch_size=512,
                       template_chunk=1024)
         c.checkpoint.update(every_steps=2000, max_to_keep=3)
         c.mesh.update(data=-1, fsdp=8)

@@ -1,0 +1,222 @@
+"""Full-image detection and single-view object generation (3PT stages 1 and 2), jitted.
+
+The one detection path shared by inference (``infer.detect.SceneDetector``) and the training
+evaluation (``train.eval_detector``), so that the checkpoint chosen by training is the one that
+detects best the way a user runs it. :class:`FullImageDetector` builds, once per image size,
+one jitted function that
+
+1. cuts the image into pan-and-scan tiles (:mod:`threept_jax.pipeline.pan_and_scan`),
+2. queries every object in every tile (early fusion; ``jax.lax.map`` over objects), scores every
+   patch (:func:`detection_scores`), drops patches whose box touches an interior tile edge, and
+   keeps each object's ``candidates_per_object`` best patches,
+3. merges all candidates by one NMS across tiles, scales and objects,
+4. turns every kept detection into K pose hypotheses (:func:`single_view_hypotheses`: top
+   templates at least ``min_angle_deg`` apart, translation fitted to the box).
+
+Several score modes can be evaluated from one forward pass (the training evaluation reports
+each); steps 2-4 run once per mode.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from threept_jax.geometry.boxes import nms
+from threept_jax.models.detector import orientation_scores, patch_scores
+from threept_jax.pipeline import pan_and_scan as pns
+from threept_jax.pipeline.object_generation import single_view_hypotheses
+
+Array = jax.Array
+
+#: Per-patch detection scores (:func:`detection_scores`).
+SCORE_MODES = ("product", "presence", "template")
+#: The score inference uses (``infer.detect.SceneDetector``).
+DEFAULT_SCORE_MODE = "product"
+#: Model points kept per object for fitting boxes (object generation).
+NUM_POINTS = 1024
+
+
+def model_points(vertices: np.ndarray, n: int = NUM_POINTS) -> np.ndarray:
+    """[n, 3] float32 points of a mesh's vertices [N, 3] for object generation: all vertices
+    (the first repeated up to ``n``) or a fixed random subset that keeps the extreme vertices
+    of each axis, which decide the boxes."""
+    v = np.asarray(vertices, np.float32)
+    if len(v) <= n:
+        return np.concatenate([v, np.repeat(v[:1], n - len(v), 0)])  # duplicates are harmless
+    idx = np.random.default_rng(0).choice(len(v), n, replace=False)
+    extremes = np.concatenate([np.argmin(v, 0), np.argmax(v, 0)])
+    idx[: len(extremes)] = extremes
+    return v[idx]
+
+
+def detection_scores(presence_logits: Array, detection_logits: Array, mode: str) -> Array:
+    """Per-patch score in [0, 1], [..., P], from the presence logits and the best template
+    logits (``Detector.__call__``'s ``detection_logits``, the max over the template bank).
+
+    ``"product"``: sigmoid(presence) x sigmoid(best template logit) (``patch_scores``);
+    ``"presence"``: sigmoid(presence); ``"template"``: sigmoid(best template logit), the paper's
+    "maximum similarity score over all orientation templates".
+    """
+    if mode == "product":
+        return patch_scores(presence_logits, detection_logits)
+    if mode == "presence":
+        return patch_scores(presence_logits)
+    if mode == "template":
+        return jax.nn.sigmoid(detection_logits.astype(jnp.float32))
+    raise ValueError(f"unknown score mode {mode!r}; use one of {SCORE_MODES}")
+
+
+@dataclasses.dataclass(frozen=True)
+class DetectionSettings:
+    """How candidates become detections (module docstring).
+
+    ``score_threshold``: detections scoring below it are dropped; ``nms_iou``: NMS overlap;
+    ``max_detections``: per image; ``candidates_per_object``: patches kept per object before
+    NMS; ``num_hypotheses`` / ``min_angle_deg``: object generation; ``score_modes``: the
+    scores to run steps 2-4 with (:data:`SCORE_MODES`); ``generate_objects``: False skips
+    step 4 (no model points needed).
+    """
+
+    score_threshold: float = 0.1
+    nms_iou: float = 0.5
+    max_detections: int = 100
+    candidates_per_object: int = 256
+    num_hypotheses: int = 8
+    min_angle_deg: float = 45.0
+    score_modes: tuple[str, ...] = (DEFAULT_SCORE_MODE,)
+    generate_objects: bool = True
+
+    def __post_init__(self):
+        bad = [m for m in self.score_modes if m not in SCORE_MODES]
+        if bad or not self.score_modes:
+            raise ValueError(f"score_modes {self.score_modes!r}: each must be one of "
+                             f"{SCORE_MODES}, at least one")
+        if self.max_detections < 1 or self.candidates_per_object < 1:
+            raise ValueError("max_detections and candidates_per_object must be >= 1, got "
+                             f"{self.max_detections} and {self.candidates_per_object}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectQueries:
+    """The onboarded objects queried in every image (O objects, T templates each).
+
+    ``prior_tokens`` [O, Np, D]; ``template_bank`` [O, T, E] unit vectors;
+    ``template_rotations`` [T, 3, 3] (shared) or [O, T, 3, 3], object-centred; ``points``
+    [O, N, 3] model points (mm), or None when objects are not generated.
+    """
+
+    prior_tokens: Array
+    template_bank: Array
+    template_rotations: Array
+    points: Array | None = None
+
+    @property
+    def num_objects(self) -> int:
+        return int(self.prior_tokens.shape[0])
+
+
+def detection_function(graphdef: nnx.GraphDef, layout: pns.TileLayout,
+                       settings: DetectionSettings):
+    """``run(params, image, K, queries) -> {mode: outputs}`` (pure; jit it), for one layout.
+
+    ``image`` [H, W, 3] (uint8 or float in [0, 255]), ``K`` [3, 3] float32. Per score mode,
+    with D = ``max_detections``: ``boxes`` [D, 4] (xyxy image pixels), ``scores`` [D],
+    ``valid`` [D] (kept by NMS above the threshold, best first), ``object`` [D] (row of the
+    queries), ``best_score`` (the best candidate's score, -inf when none survived the edge
+    filter), ``template_scores`` [D, T] (cosine with each template of the detection's object)
+    and, with ``generate_objects``, ``poses`` [D, K, 4, 4], ``pose_scores`` [D, K].
+    """
+    s = settings
+    modes = tuple(dict.fromkeys(s.score_modes))
+
+    def per_object(params, tiles, prior, bank):
+        model = nnx.merge(graphdef, params)
+        n = tiles.shape[0]
+        out = model(tiles, jnp.broadcast_to(prior, (n, *prior.shape)), bank)
+        boxes = pns.tile_boxes_to_image(out["boxes"], layout).reshape(-1, 4)  # [N * P, 4]
+        edge = pns.interior_edge_mask(out["boxes"], layout)  # [N, P]
+        emb = out["embeddings"].reshape(-1, out["embeddings"].shape[-1])
+        res = {}
+        for mode in modes:
+            scores = detection_scores(out["presence_logits"], out["detection_logits"], mode)
+            scores = jnp.where(edge, -jnp.inf, scores).reshape(-1)
+            top_scores, top = jax.lax.top_k(scores, min(s.candidates_per_object, scores.size))
+            res[mode] = (boxes[top], top_scores, emb[top])
+        return res
+
+    def finish(boxes, scores, emb, K, queries: ObjectQueries):
+        c = scores.shape[1]  # scores [O, C]
+        keep, ok = nms(boxes.reshape(-1, 4), scores.reshape(-1), s.nms_iou, s.max_detections,
+                       s.score_threshold)
+        obj = keep // c
+        det_boxes = boxes.reshape(-1, 4)[keep]
+        det_emb = emb.reshape(-1, emb.shape[-1])[keep]
+        tmpl = orientation_scores(det_emb[:, None], queries.template_bank[obj])[:, 0]  # [D, T]
+        out = {"boxes": det_boxes, "scores": scores.reshape(-1)[keep], "valid": ok,
+               "best_score": jnp.max(scores), "object": obj, "template_scores": tmpl}
+        if s.generate_objects:
+            rot = queries.template_rotations
+            rot = rot[obj] if rot.ndim == 4 else jnp.broadcast_to(rot, (len(obj), *rot.shape))
+            poses, pose_scores, _ = jax.vmap(
+                lambda b, t, r, p: single_view_hypotheses(b, K, t, r, p, s.num_hypotheses,
+                                                          s.min_angle_deg))(
+                    det_boxes, tmpl, rot, queries.points[obj])
+            out.update(poses=poses, pose_scores=pose_scores)
+        return out
+
+    def run(params, image, K, queries: ObjectQueries):
+        if s.generate_objects and queries.points is None:
+            raise ValueError("generate_objects needs model points: pass ObjectQueries.points")
+        tiles = pns.extract_tiles(image, layout)
+        cands = jax.lax.map(lambda x: per_object(params, tiles, x[0], x[1]),
+                            (queries.prior_tokens, queries.template_bank))
+        return {mode: finish(*cands[mode], K, queries) for mode in modes}
+
+    return run
+
+
+jax.tree_util.register_dataclass(
+    ObjectQueries, data_fields=["prior_tokens", "template_bank", "template_rotations", "points"],
+    meta_fields=[])
+
+
+class FullImageDetector:
+    """The jitted :func:`detection_function` per image size, built once (module docstring).
+
+    ``scales``: pan-and-scan scales; None: ``num_scales`` geometric scales
+    (``pan_and_scan.geometric_scales``). ``jit_kwargs`` go to ``jax.jit`` (the training
+    evaluation replicates the outputs over its device mesh).
+    """
+
+    def __init__(self, graphdef: nnx.GraphDef, tile_size: int, settings: DetectionSettings, *,
+                 num_scales: int = 3, scales: Sequence[float] | None = None,
+                 jit_kwargs: dict | None = None):
+        self.graphdef = graphdef
+        self.tile_size = int(tile_size)
+        self.settings = settings
+        self.num_scales = int(num_scales)
+        self.scales = None if scales is None else tuple(float(v) for v in scales)
+        self.jit_kwargs = dict(jit_kwargs or {})
+        self._fns: dict[tuple[int, int], object] = {}
+
+    def layout(self, image_hw: tuple[int, int]) -> pns.TileLayout:
+        scales = self.scales or pns.geometric_scales(image_hw, self.tile_size, self.num_scales)
+        return pns.tile_layout(image_hw, self.tile_size, scales)
+
+    def compiled(self, image_hw: tuple[int, int]):
+        """The jitted function for images of ``image_hw`` (H, W)."""
+        image_hw = (int(image_hw[0]), int(image_hw[1]))
+        if image_hw not in self._fns:
+            fn = detection_function(self.graphdef, self.layout(image_hw), self.settings)
+            self._fns[image_hw] = jax.jit(fn, **self.jit_kwargs)
+        return self._fns[image_hw]
+
+    def __call__(self, params, image, K, queries: ObjectQueries) -> dict[str, dict[str, Array]]:
+        """:func:`detection_function`'s outputs for one image [H, W, 3]."""
+        return self.compiled(tuple(np.shape(image)[:2]))(params, image, K, queries)
