@@ -107,7 +107,8 @@ def run_bop(args) -> dict:
         for d, m in zip(dets, masks):
             poses.append(bop.PoseEstimate(scene_id, im_id, d.obj_id, d.score, d.pose[:3, :3],
                                           d.pose[:3, 3], elapsed))
-            x0, y0, x1, y1 = (float(v) for v in d.box)
+            # Detections are amodal; BOP's 2D ground truth lies inside the image.
+            x0, y0, x1, y1 = np.clip(d.box, 0, [image.shape[1], image.shape[0]] * 2).tolist()
             dets2d.append(bop.Detection2D(scene_id, im_id, d.obj_id, d.score,
                                           (x0, y0, x1 - x0, y1 - y0), bop.mask_to_rle(m), elapsed))
         if n < args.overlays:

@@ -55,7 +55,7 @@ import numpy as np
 from flax import nnx
 
 from threept_jax.data import records
-from threept_jax.data.banks import BankFile, ObjectEntry, resize_renders
+from threept_jax.data.banks import BankFile, ObjectEntry, check_render_size
 from threept_jax.data.bop import Detection2D, GtInfo, GtInstance, PoseEstimate, Target
 from threept_jax.data.detector_input import BankCache, detection_dataset, find_shards
 from threept_jax.eval.bop6d import ImageGt, evaluate_poses
@@ -351,8 +351,9 @@ class DetectorEvaluator:
         size = self.render_size
         for o in self.obj_ids:
             bank: BankFile = self.banks.get(int(o))
-            p = resize_renders(bank.priors(), size)[None]
-            t = resize_renders(bank.templates(self.template_ids[int(o)]), size)[None]
+            p = check_render_size(bank.priors(), size, str(bank.path))[None]
+            t = check_render_size(bank.templates(self.template_ids[int(o)]), size,
+                                  str(bank.path))[None]
             priors.append(self._embed_object(params, p)[0])
             banks.append(self._embed_templates(params, t)[0])
         return jnp.stack(priors), jnp.stack(banks)

@@ -94,7 +94,6 @@ BANK_SYM_DISC_STEP = 0.05
 __all__ = [
     "BANK_FORMAT_VERSION", "BANK_SYM_DISC_STEP", "BankFile", "DISTANCE_FACTOR", "FILL",
     "ObjectEntry", "RenderBank", "bank_symmetries", "bounding_sphere", "check_render_size",
-    "resize_renders",
     "load_bank", "load_object_table",
     "render_camera", "render_pose", "save_bank", "write_object_table",
 ]
@@ -156,14 +155,6 @@ def check_render_size(images: np.ndarray, size: int | None, where: str) -> np.nd
         f"render_size is {size}; banks are rendered at the model's render size (the size and "
         f"anti-aliasing inference onboarding uses): re-render them with `python -m datagen.banks "
         f"--records DIR --size {size} --force` (or pack with --bank-size {size})")
-
-
-def resize_renders(images: np.ndarray, size: int | None) -> np.ndarray:
-    """uint8 [N, h, w, 3] -> [N, size, size, 3] (area filter when shrinking); ``None`` keeps."""
-    if size is None or images.shape[1:3] == (size, size):
-        return images
-    interp = cv2.INTER_AREA if images.shape[1] > size else cv2.INTER_LINEAR
-    return np.stack([cv2.resize(im, (size, size), interpolation=interp) for im in images])
 
 
 def bank_symmetries(symmetries: Symmetries, max_sym_disc_step: float = BANK_SYM_DISC_STEP

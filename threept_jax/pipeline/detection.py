@@ -139,7 +139,9 @@ def detection_function(graphdef: nnx.GraphDef, layout: pns.TileLayout,
         model = nnx.merge(graphdef, params)
         n = tiles.shape[0]
         out = model(tiles, jnp.broadcast_to(prior, (n, *prior.shape)), bank)
-        boxes = pns.tile_boxes_to_image(out["boxes"], layout).reshape(-1, 4)  # [N * P, 4]
+        # Amodal boxes (an object cut by the image border keeps its whole box): object
+        # generation's depth rule needs the whole box, so boxes are not clipped to the image.
+        boxes = pns.tile_boxes_to_image(out["boxes"], layout, clip=False).reshape(-1, 4)
         edge = pns.interior_edge_mask(out["boxes"], layout)  # [N, P]
         emb = out["embeddings"].reshape(-1, out["embeddings"].shape[-1])
         res = {}
