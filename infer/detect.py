@@ -69,7 +69,8 @@ class SceneDetector:
     """Detects onboarded objects in images (module docstring)."""
 
     def __init__(self, model: Detector, config: DetectorConfig, objects: Sequence[OnboardedObject],
-                 *, num_scales: int = 3, scales: Sequence[float] | None = None,
+                 *, num_scales: int | None = None, scales: Sequence[float] | None = None,
+                 depth_range: tuple[float, float] | None = None,
                  score_threshold: float = 0.1, nms_iou: float = 0.5, max_detections: int = 100,
                  candidates_per_object: int = 256, num_hypotheses: int = 8,
                  min_angle_deg: float = 45.0):
@@ -82,6 +83,9 @@ class SceneDetector:
         self.objects = list(objects)
         self.num_scales = num_scales
         self.scales = None if scales is None else tuple(float(s) for s in scales)
+        self.depth_range = None if depth_range is None else tuple(float(z) for z in depth_range)
+        if self.depth_range is not None:  # checked now, not at the first image
+            pns.projected_size_range([o.diameter for o in objects], self.depth_range, np.eye(3))
         self.score_threshold = float(score_threshold)
         self.nms_iou = float(nms_iou)
         self.max_detections = int(max_detections)
@@ -94,21 +98,27 @@ class SceneDetector:
         self._bank = jnp.asarray(np.stack([x.template_bank for x in self.objects]))
         self._points = jnp.asarray(np.stack([x.points for x in self.objects]))
         self._rotations = jnp.asarray(self.objects[0].template_rotations)
-        self._steps: dict[tuple[int, int], object] = {}
+        self._steps: dict[tuple, object] = {}
 
-    def layout(self, image_hw: tuple[int, int]) -> pns.TileLayout:
+    def layout(self, image_hw: tuple[int, int], K: np.ndarray | None = None) -> pns.TileLayout:
+        """The tiles of an image: ``scales`` if given, else planned for the depth range (the
+        objects' projected diameters through K) or, without one, for 64 px to the image."""
         tile = self.config.image_size
-        scales = self.scales or pns.geometric_scales(image_hw, tile, self.num_scales)
-        return pns.tile_layout(image_hw, tile, scales)
+        if self.scales:
+            return pns.tile_layout(image_hw, tile, self.scales)
+        sizes = None if self.depth_range is None else pns.projected_size_range(
+            [o.diameter for o in self.objects], self.depth_range, K)
+        return pns.plan_layout(image_hw, tile, object_sizes=sizes, num_scales=self.num_scales)
 
-    def _compiled(self, image_hw: tuple[int, int]):
-        """The jitted detection function for one image size, built once per detector."""
-        if image_hw not in self._steps:
-            self._steps[image_hw] = self._build(image_hw)
-        return self._steps[image_hw]
+    def _compiled(self, image_hw: tuple[int, int], K: np.ndarray | None = None):
+        """The jitted detection function for one tile layout, built once per detector."""
+        layout = self.layout(image_hw, K)
+        key = (image_hw, layout.scales, layout.tile_origin.tobytes())
+        if key not in self._steps:
+            self._steps[key] = self._build(layout)
+        return self._steps[key]
 
-    def _build(self, image_hw: tuple[int, int]):
-        layout = self.layout(image_hw)
+    def _build(self, layout: pns.TileLayout):
         graphdef, cand, max_det = self._graphdef, self.candidates, self.max_detections
         k, min_angle = self.num_hypotheses, self.min_angle_deg
         thr, iou = self.score_threshold, self.nms_iou
@@ -155,7 +165,7 @@ class SceneDetector:
                              "(x * 255).round().astype(np.uint8) for float images in [0, 1])")
         hw = image.shape[:2]
         K = validate_intrinsics(K, "K", image_hw=hw).astype(np.float32)
-        out = self._compiled(hw)(self._params, image, K, self._prior, self._bank, self._points,
+        out = self._compiled(hw, K)(self._params, image, K, self._prior, self._bank, self._points,
                                  self._rotations)
         out = jax.tree.map(np.asarray, out)
         dets = Detections(best_score=out["best_score"])
