@@ -1,9 +1,16 @@
 """Pan-and-scan: overlapping square tiles at several scales, box back-mapping and merging NMS.
 
 3PT-D sees fixed-size tiles (512 x 512 in the paper) in which training put objects at 128-350
-px (DESIGN.md section 1.1). A full image is resized by each scale s, cut into overlapping
-tiles, each tile is queried with each object, and the detections are mapped back to the full
-image and merged by NMS across tiles, scales and (optionally) objects.
+px (DESIGN.md section 1.1; ``SCALE_PRIOR``, scaled with the tile). A full image is resized by
+each scale s, cut into overlapping tiles, each tile is queried with each object, and the
+detections are mapped back to the full image and merged by NMS across tiles, scales and
+(optionally) objects.
+
+Scales come from what the user knows (:func:`plan_layout`): with a known depth range, the one
+scale (or the few) that puts the objects' projected diameters ``diameter * f / z`` into the
+prior (:func:`projected_size_range`); with nothing known (BOP), the fewest scales that cover
+objects from 64 px to the whole image, each mapping its share of sizes into the prior
+(:func:`scales_for_sizes`): 3 scales and 27 tiles of 512 px per object on a 640 x 480 image.
 
 Conventions: images [H, W, C]; boxes in full-image pixels are xyxy in pixel-edge coordinates
 (the image spans [0, W] x [0, H]); detector boxes are normalised cxcywh within a tile. Scaling
