@@ -125,8 +125,10 @@ def run_scene(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarra
       objects: onboarded objects, or ``{obj_id: mesh}`` to onboard (``units`` of the meshes).
       models: from :func:`load`.
       with_masks, min_views: see :func:`infer.scene.find_instances`.
-      detector_options: :class:`SceneDetector` options (``num_scales``, ``score_threshold``,
-        ``max_detections``, ...).
+      detector_options: :class:`SceneDetector` options: ``depth_range`` (zmin, zmax) in mm,
+        the objects' distance from the camera when known (pan-and-scan then uses the fewest
+        scales that put their projected diameters into the trained size range), ``num_scales``,
+        ``score_threshold``, ``max_detections``, ...
 
     Returns :class:`infer.scene.Instances`, best first, with ``best_score`` (the best
     detection score in any view, kept or not).

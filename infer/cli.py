@@ -49,6 +49,17 @@ def _fraction(text: str) -> float:
     return value
 
 
+def _positive(text: str) -> float:
+    """An argparse ``type``: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}") from None
+    if not 0.0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
 def _step(text: str) -> str | int:
     """An argparse ``type``: ``best``, ``latest`` or a checkpoint step >= 0."""
     if text in ("best", "latest"):
@@ -68,8 +79,14 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="templates per object: 1024 covers rotations to 22 deg, half the 45 deg "
                         "between pose hypotheses; 5140 (the paper's bank, 12.8 deg) onboards 5x "
                         "slower")
-    p.add_argument("--num-scales", type=_int_at_least(1), default=3,
-                   help="pan-and-scan scales (3 for an unknown depth range)")
+    p.add_argument("--depth-range", type=_positive, nargs=2, metavar=("ZMIN", "ZMAX"),
+                   help="distance range of the objects from the camera (mm): pan-and-scan "
+                        "uses the one scale (or the few) that puts their projected diameters "
+                        "(diameter * f / z) at the sizes the detector was trained on; without "
+                        "it, the scales cover objects from 64 px to the whole image")
+    p.add_argument("--num-scales", type=_int_at_least(1), default=None,
+                   help="pan-and-scan scales (default: the fewest that cover the object sizes: "
+                        "3 for a 640x480 image without --depth-range)")
     p.add_argument("--score-threshold", type=_fraction, default=0.1,
                    help="keep detections scoring above this, in [0, 1]")
     p.add_argument("--max-detections", type=_int_at_least(1), default=100, help="per image")
@@ -129,7 +146,8 @@ def load_models(args):
 
 
 def detector_options(args) -> dict:
-    return dict(num_scales=args.num_scales, score_threshold=args.score_threshold,
+    return dict(num_scales=args.num_scales, depth_range=args.depth_range,
+                score_threshold=args.score_threshold,
                 max_detections=args.max_detections)
 
 
@@ -236,6 +254,9 @@ def run_images(args) -> list:
 def main(argv: Sequence[str] | None = None):
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.depth_range is not None and args.depth_range[0] > args.depth_range[1]:
+        parser.error(f"argument --depth-range: ZMIN must be <= ZMAX, got {args.depth_range[0]:g} "
+                     f"{args.depth_range[1]:g}")
     try:
         if args.command == "bop":
             from infer.bop_runner import run_bop

@@ -75,7 +75,8 @@ class SceneDetector:
     :class:`threept_jax.pipeline.detection.FullImageDetector`, the path training evaluates."""
 
     def __init__(self, model: Detector, config: DetectorConfig, objects: Sequence[OnboardedObject],
-                 *, num_scales: int = 3, scales: Sequence[float] | None = None,
+                 *, num_scales: int | None = None, scales: Sequence[float] | None = None,
+                 depth_range: tuple[float, float] | None = None,
                  score_threshold: float = 0.1, nms_iou: float = 0.5, max_detections: int = 100,
                  candidates_per_object: int = 256, num_hypotheses: int = 8,
                  min_angle_deg: float = 45.0):
@@ -86,6 +87,9 @@ class SceneDetector:
             raise ValueError(f"objects were onboarded with different template counts {sorted(t)}")
         self.config = config
         self.objects = list(objects)
+        self.depth_range = None if depth_range is None else tuple(float(z) for z in depth_range)
+        if self.depth_range is not None:  # checked now, not at the first image
+            pns.projected_size_range([o.diameter for o in objects], self.depth_range, np.eye(3))
         self.logit_scale = float(model.logit_scale)
         settings = DetectionSettings(
             score_threshold=float(score_threshold), nms_iou=float(nms_iou),
@@ -104,12 +108,20 @@ class SceneDetector:
     def score_threshold(self) -> float:
         return self._core.settings.score_threshold
 
-    def layout(self, image_hw: tuple[int, int]) -> pns.TileLayout:
-        return self._core.layout(image_hw)
+    def _object_sizes(self, K: np.ndarray | None) -> tuple[float, float] | None:
+        """Expected projected diameters (px) from the depth range, None when unknown."""
+        if self.depth_range is None or K is None:
+            return None
+        return pns.projected_size_range([o.diameter for o in self.objects], self.depth_range, K)
 
-    def _compiled(self, image_hw: tuple[int, int]):
-        """The jitted detection function for one image size, built once per detector."""
-        return self._core.compiled(image_hw)
+    def layout(self, image_hw: tuple[int, int], K: np.ndarray | None = None) -> pns.TileLayout:
+        """The tiles of an image: ``scales`` if given, else planned for the depth range (the
+        objects' projected diameters through K) or, without one, for 64 px to the image."""
+        return self._core.layout(image_hw, self._object_sizes(K))
+
+    def _compiled(self, image_hw: tuple[int, int], K: np.ndarray | None = None):
+        """The jitted detection function for one tile layout, built once per detector."""
+        return self._core.compiled(image_hw, self._object_sizes(K))
 
     def detect(self, image: np.ndarray, K: np.ndarray) -> Detections:
         """Detections in one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3] (pixels of
@@ -122,7 +134,8 @@ class SceneDetector:
                              "(x * 255).round().astype(np.uint8) for float images in [0, 1])")
         hw = image.shape[:2]
         K = validate_intrinsics(K, "K", image_hw=hw).astype(np.float32)
-        out = self._core(self._params, image, K, self._queries)[DEFAULT_SCORE_MODE]
+        out = self._core(self._params, image, K, self._queries,
+                         self._object_sizes(K))[DEFAULT_SCORE_MODE]
         out = jax.tree.map(np.asarray, out)
         dets = Detections(best_score=out["best_score"])
         for i in np.flatnonzero(out["valid"]):

@@ -3,8 +3,8 @@
 **Full images (the headline and the best-checkpoint metric).** The first ``eval.num_images``
 val records are detected the way inference detects them
 (:class:`threept_jax.pipeline.detection.FullImageDetector`: pan-and-scan at
-``eval.num_scales`` geometric scales, every val object queried in every tile, one NMS across
-tiles, scales and objects, ``eval.max_detections`` per image, no score threshold), with each
+``eval.num_scales`` scales (``pan_and_scan.plan_layout``), every val object queried in every
+tile, one NMS across tiles, scales and objects, ``eval.max_detections`` per image, no score threshold), with each
 val object's prior tokens and template bank (``eval.num_templates`` templates of its render
 bank, all by default) embedded once per evaluation. Metrics:
 

@@ -184,3 +184,50 @@ def test_mesh_units_error_names_the_units_flag(files, capsys, monkeypatch):
     monkeypatch.setattr(cli, "load_models", lambda args: MeshLoadingModels())
     err = _fails(capsys, _images_argv(files, "--K", "60,60,31.5,23.5"), "pass --units m")
     assert "units='m'" not in err and "a.ply" in err
+
+
+def test_depth_range_reaches_the_detector_and_bad_ones_exit_2(files, capsys, monkeypatch):
+    class FakeModels:
+        def onboard(self, meshes, units):
+            return []
+
+    seen = {}
+
+    def fake_run_scene(*args, **options):
+        seen.update(options)
+        return Instances([], best_score=0.0)
+
+    monkeypatch.setattr(cli, "load_models", lambda args: FakeModels())
+    monkeypatch.setattr(cli, "run_scene", fake_run_scene)
+    main(_images_argv(files, "--K", "60,60,31.5,23.5", "--depth-range", "400", "900"))
+    assert seen["depth_range"] == [400.0, 900.0] and seen["num_scales"] is None
+    argv = _images_argv(files, "--K", "60,60,31.5,23.5", "--depth-range")
+    _fails(capsys, argv + ["0", "500"], "argument --depth-range: must be a finite number > 0")
+    _fails(capsys, argv + ["900", "400"], "argument --depth-range: ZMIN must be <= ZMAX")
+
+
+def test_depth_range_option_plans_one_scale_from_the_projected_diameters():
+    """run_scene's ``depth_range`` option reaches the tiles: a 100 mm object at 500-800 mm
+    through f = 600 px spans 75-120 px (diameter * f / z), one scale for the 512 px tile:
+    sqrt(128 * 350 / (75 * 120)) = 2.2311 (hand-derived)."""
+    from flax import nnx
+
+    from infer.api import Models
+    from infer.onboarding import OnboardedObject
+    from threept_jax.models.configs import DetectorConfig
+    from threept_jax.models.detector import Detector
+
+    cfg = DetectorConfig(variant="tiny/16", image_size=512, render_size=32)
+    obj = OnboardedObject(1, "o", None, 100.0, np.zeros((8, 3), np.float32),
+                          np.zeros((cfg.num_prior_tokens, cfg.width), np.float32),
+                          np.eye(4, cfg.embed_dim, dtype=np.float32),
+                          np.tile(np.eye(3, dtype=np.float32), (4, 1, 1)),
+                          np.eye(4, dtype=np.float32)[None], np.zeros(3, np.float32))
+    models = Models(Detector(cfg, rngs=nnx.Rngs(0)), cfg, 0, onboarder=None)
+    K = np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]])
+    layout = models.scene_detector([obj], depth_range=(500.0, 800.0)).layout((480, 640), K)
+    np.testing.assert_allclose(layout.scales, [2.2311], rtol=1e-4)
+    unknown = models.scene_detector([obj]).layout((480, 640), K)
+    assert len(unknown.scales) == 3
+    with pytest.raises(ValueError, match="depth range"):
+        models.scene_detector([obj], depth_range=(800.0, 500.0))

@@ -64,16 +64,13 @@ from threept_jax.data import records
 from threept_jax.data.banks import BankFile, ObjectEntry, check_render_size, load_object_table
 from threept_jax.geometry.camera import object_centred_rotation
 from threept_jax.geometry.symmetry import nearest_templates
+from threept_jax.pipeline.pan_and_scan import SCALE_PRIOR, SCALE_REFERENCE_TILE
 
 __all__ = [
     "AttachRenders", "BankCache", "DecodeExample", "ExampleConfig", "PhotometricAugment",
     "PhotometricConfig", "SampleTile", "augment_image", "crop_transform", "detection_dataset",
     "find_shards", "warp_crop",
 ]
-
-#: Object sizes (pixels on a 512 tile) that training puts objects at (DESIGN.md section 1.1).
-SCALE_PRIOR = (128.0, 350.0)
-SCALE_REFERENCE_TILE = 512
 
 
 @dataclasses.dataclass(frozen=True)

@@ -191,34 +191,43 @@ jax.tree_util.register_dataclass(
 class FullImageDetector:
     """The jitted :func:`detection_function` per image size, built once (module docstring).
 
-    ``scales``: pan-and-scan scales; None: ``num_scales`` geometric scales
-    (``pan_and_scan.geometric_scales``). ``jit_kwargs`` go to ``jax.jit`` (the training
-    evaluation replicates the outputs over its device mesh).
+    ``scales``: pan-and-scan scales; None: planned per image by ``pan_and_scan.plan_layout``
+    (``num_scales`` of them, or the fewest that cover the expected object sizes).
+    ``jit_kwargs`` go to ``jax.jit`` (the training evaluation replicates the outputs over its
+    device mesh).
     """
 
     def __init__(self, graphdef: nnx.GraphDef, tile_size: int, settings: DetectionSettings, *,
-                 num_scales: int = 3, scales: Sequence[float] | None = None,
+                 num_scales: int | None = None, scales: Sequence[float] | None = None,
                  jit_kwargs: dict | None = None):
         self.graphdef = graphdef
         self.tile_size = int(tile_size)
         self.settings = settings
-        self.num_scales = int(num_scales)
+        self.num_scales = None if num_scales is None else int(num_scales)
         self.scales = None if scales is None else tuple(float(v) for v in scales)
         self.jit_kwargs = dict(jit_kwargs or {})
-        self._fns: dict[tuple[int, int], object] = {}
+        self._fns: dict[tuple, object] = {}
 
-    def layout(self, image_hw: tuple[int, int]) -> pns.TileLayout:
-        scales = self.scales or pns.geometric_scales(image_hw, self.tile_size, self.num_scales)
-        return pns.tile_layout(image_hw, self.tile_size, scales)
+    def layout(self, image_hw: tuple[int, int],
+               object_sizes: tuple[float, float] | None = None) -> pns.TileLayout:
+        """The tiles of an image: ``scales`` if given, else planned for the objects' expected
+        sizes in pixels (``pan_and_scan.plan_layout``; None: 64 px to the whole image)."""
+        if self.scales:
+            return pns.tile_layout(image_hw, self.tile_size, self.scales)
+        return pns.plan_layout(image_hw, self.tile_size, object_sizes=object_sizes,
+                               num_scales=self.num_scales)
 
-    def compiled(self, image_hw: tuple[int, int]):
-        """The jitted function for images of ``image_hw`` (H, W)."""
-        image_hw = (int(image_hw[0]), int(image_hw[1]))
-        if image_hw not in self._fns:
-            fn = detection_function(self.graphdef, self.layout(image_hw), self.settings)
-            self._fns[image_hw] = jax.jit(fn, **self.jit_kwargs)
-        return self._fns[image_hw]
+    def compiled(self, image_hw: tuple[int, int],
+                 object_sizes: tuple[float, float] | None = None):
+        """The jitted function for one tile layout, built once."""
+        layout = self.layout((int(image_hw[0]), int(image_hw[1])), object_sizes)
+        key = (layout.image_hw, layout.scales, layout.tile_origin.tobytes())
+        if key not in self._fns:
+            fn = detection_function(self.graphdef, layout, self.settings)
+            self._fns[key] = jax.jit(fn, **self.jit_kwargs)
+        return self._fns[key]
 
-    def __call__(self, params, image, K, queries: ObjectQueries) -> dict[str, dict[str, Array]]:
+    def __call__(self, params, image, K, queries: ObjectQueries,
+                 object_sizes: tuple[float, float] | None = None) -> dict[str, dict[str, Array]]:
         """:func:`detection_function`'s outputs for one image [H, W, 3]."""
-        return self.compiled(tuple(np.shape(image)[:2]))(params, image, K, queries)
+        return self.compiled(tuple(np.shape(image)[:2]), object_sizes)(params, image, K, queries)

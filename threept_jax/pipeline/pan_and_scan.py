@@ -1,9 +1,16 @@
 """Pan-and-scan: overlapping square tiles at several scales, box back-mapping and merging NMS.
 
 3PT-D sees fixed-size tiles (512 x 512 in the paper) in which training put objects at 128-350
-px (DESIGN.md section 1.1). A full image is resized by each scale s, cut into overlapping
-tiles, each tile is queried with each object, and the detections are mapped back to the full
-image and merged by NMS across tiles, scales and (optionally) objects.
+px (DESIGN.md section 1.1; ``SCALE_PRIOR``, scaled with the tile). A full image is resized by
+each scale s, cut into overlapping tiles, each tile is queried with each object, and the
+detections are mapped back to the full image and merged by NMS across tiles, scales and
+(optionally) objects.
+
+Scales come from what the user knows (:func:`plan_layout`): with a known depth range, the one
+scale (or the few) that puts the objects' projected diameters ``diameter * f / z`` into the
+prior (:func:`projected_size_range`); with nothing known (BOP), the fewest scales that cover
+objects from 64 px to the whole image, each mapping its share of sizes into the prior
+(:func:`scales_for_sizes`): 3 scales and 27 tiles of 512 px per object on a 640 x 480 image.
 
 Conventions: images [H, W, C]; boxes in full-image pixels are xyxy in pixel-edge coordinates
 (the image spans [0, W] x [0, H]); detector boxes are normalised cxcywh within a tile. Scaling
@@ -16,6 +23,7 @@ Shapes: N tiles, P patches per tile, O query objects, K kept detections.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -25,8 +33,21 @@ from threept_jax.geometry.boxes import cxcywh_to_xyxy
 
 Array = jax.Array
 
-#: Object sizes (pixels in a tile) the detector is trained for (DESIGN.md section 1.1).
-TRAINED_SIZE_RANGE = (128.0, 350.0)
+#: The scale prior: object sizes (longer side of the amodal box, pixels) that detector training
+#: puts objects at on a ``SCALE_REFERENCE_TILE`` tile (DESIGN.md section 1.1); a tile of side t
+#: scales it by t / ``SCALE_REFERENCE_TILE`` (:func:`size_prior`). The one home of this
+#: convention: ``data/detector_input.py`` crops training tiles to it.
+SCALE_PRIOR = (128.0, 350.0)
+SCALE_REFERENCE_TILE = 512
+
+#: Smallest object (pixels of the full image) that the scales for an unknown depth range cover.
+MIN_OBJECT_SIZE = 64.0
+
+
+def size_prior(tile_size: int) -> tuple[float, float]:
+    """(lo, hi) object sizes in pixels of a ``tile_size`` tile that training puts objects at."""
+    f = tile_size / SCALE_REFERENCE_TILE
+    return SCALE_PRIOR[0] * f, SCALE_PRIOR[1] * f
 
 
 def axis_tile_starts(length: int, tile: int, min_overlap: int) -> np.ndarray:
@@ -92,17 +113,17 @@ def tile_layout(image_hw: tuple[int, int], tile_size: int = 512, scales=(1.0,),
     """Tiles of ``tile_size`` with overlap >= ``min_overlap`` px at each scale, row-major.
 
     An object of up to ``min_overlap`` pixels (at that scale) lies wholly inside at least one
-    tile. The default, ``min(128, tile_size // 4)``, is the smallest trained object size for
-    512 tiles; raise it towards 350 to see every trained-size object whole at the cost of
-    more tiles.
+    tile. The default is the top of the scale prior (:func:`size_prior`), so every object of a
+    trained size is seen whole; :func:`plan_layout` lowers it to the largest size its scales
+    put an object at.
     """
     if min_overlap is None:
-        min_overlap = min(int(TRAINED_SIZE_RANGE[0]), tile_size // 4)
+        min_overlap = min(int(np.ceil(size_prior(tile_size)[1])), tile_size - 1)
     h, w = (int(v) for v in image_hw)
     if h < 1 or w < 1:
         raise ValueError(f"image size must be positive, got {image_hw}")
     scales = tuple(float(s) for s in np.atleast_1d(scales))
-    if not scales or any(s <= 0 for s in scales):
+    if not scales or any(not s > 0 for s in scales):
         raise ValueError(f"scales must be positive, got {scales}")
     scaled, tile_scale, origin = [], [], []
     for i, s in enumerate(scales):
@@ -118,27 +139,87 @@ def tile_layout(image_hw: tuple[int, int], tile_size: int = 512, scales=(1.0,),
                       np.asarray(tile_scale, np.int64), np.asarray(origin, np.int64))
 
 
-def geometric_scales(image_hw: tuple[int, int], tile_size: int = 512, num_scales: int = 3,
-                     ratio: float = TRAINED_SIZE_RANGE[1] / TRAINED_SIZE_RANGE[0],
-                     ) -> tuple[float, ...]:
-    """Scales for an unknown depth range: the first fits the whole image in one tile, each
-    next is ``ratio`` times larger (default 350/128), so the trained size bands of
-    consecutive scales touch and together cover object sizes over ``ratio**num_scales``."""
-    if num_scales < 1:
-        raise ValueError(f"num_scales must be >= 1, got {num_scales}")
-    fit = tile_size / max(image_hw)
-    return tuple(float(fit * ratio**k) for k in range(num_scales))
+def scales_for_sizes(size_min: float, size_max: float, tile_size: int,
+                     num_scales: int | None = None) -> tuple[tuple[float, ...], float]:
+    """Scales that put objects of ``size_min``-``size_max`` full-image pixels into the prior.
+
+    The size range is split geometrically into S shares of ratio ``r = (max / min)**(1/S)``;
+    share k, ``[a_k, a_k r]``, gets the scale ``sqrt(lo hi) / sqrt(a_k * a_k r)``, which maps
+    it to ``[sqrt(lo hi / r), sqrt(lo hi r)]``, centred (geometrically) in the prior (lo, hi)
+    of :func:`size_prior`. S is ``num_scales``, or by default the fewest whose shares fit,
+    ``ceil(log(max / min) / log(hi / lo))``. Returns (scales, smallest first for the largest
+    objects, and the largest size in tile pixels any scale puts an object at).
+
+    Raises ValueError when the sizes are not positive or ``num_scales`` shares cannot fit.
+    """
+    if not 0 < size_min <= size_max < np.inf:
+        raise ValueError(f"object sizes must be 0 < min <= max, got {size_min}, {size_max}")
+    lo, hi = size_prior(tile_size)
+    ratio = size_max / size_min
+    fewest = max(1, int(np.ceil(np.log(ratio) / np.log(hi / lo) - 1e-9)))
+    if num_scales is None:
+        num_scales = fewest
+    elif num_scales < fewest:
+        raise ValueError(f"{num_scales} scale(s) cannot put object sizes {size_min:.0f}-"
+                         f"{size_max:.0f} px into the trained {lo:.0f}-{hi:.0f} px of a "
+                         f"{tile_size} px tile: use at least {fewest}")
+    r = ratio ** (1.0 / num_scales)
+    mid = np.sqrt(lo * hi)
+    scales = tuple(float(mid / (size_max / r ** (k + 0.5))) for k in range(num_scales))
+    return scales, float(mid * np.sqrt(r))
 
 
-def scale_for_object_size(expected_size_px: float,
-                          target_size_px: float = float(np.sqrt(np.prod(TRAINED_SIZE_RANGE))),
-                          ) -> float:
-    """One scale for a known depth range: maps an object of ``expected_size_px`` (its box
-    diagonal or side in the full image) to ``target_size_px`` (default: geometric mean of the
-    trained 128-350 px band)."""
-    if expected_size_px <= 0:
-        raise ValueError(f"expected_size_px must be > 0, got {expected_size_px}")
-    return float(target_size_px / expected_size_px)
+def projected_size_range(diameters_mm, depth_range_mm, K) -> tuple[float, float]:
+    """(min, max) projected object diameters ``diameter * f / z`` in pixels for objects of
+    ``diameters_mm`` at depths z in ``depth_range_mm`` (zmin, zmax) seen by intrinsics K
+    [3, 3] (f over fx and fy)."""
+    d = np.asarray(diameters_mm, np.float64).ravel()
+    if d.size == 0 or not np.all(np.isfinite(d) & (d > 0)):
+        raise ValueError(f"object diameters must be positive mm, got {d.tolist()}")
+    z = np.asarray(depth_range_mm, np.float64).ravel()
+    if z.shape != (2,) or not (np.all(np.isfinite(z)) and 0 < z[0] <= z[1]):
+        raise ValueError(f"depth range must be (zmin, zmax) in mm with 0 < zmin <= zmax, got "
+                         f"{np.ravel(depth_range_mm).tolist()}")
+    K = np.asarray(K if K is not None else np.nan, np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise ValueError(f"a depth range needs the intrinsics K [3, 3] of the image (fx, fy > 0 "
+                         f"px), got {K.tolist()}")
+    f = np.array([K[0, 0], K[1, 1]])
+    return float(d.min() * f.min() / z[1]), float(d.max() * f.max() / z[0])
+
+
+def plan_layout(image_hw: tuple[int, int], tile_size: int, *,
+                object_sizes: tuple[float, float] | None = None,
+                num_scales: int | None = None,
+                min_object_size: float = MIN_OBJECT_SIZE) -> TileLayout:
+    """The pan-and-scan tiles for what the user knows about object sizes (full-image pixels).
+
+    - Known sizes ``object_sizes`` (min, max), e.g. from a known depth range
+      (:func:`projected_size_range`): the fewest scales (or ``num_scales``) mapping them into
+      the prior (:func:`scales_for_sizes`).
+    - Nothing known (``None``): sizes from ``min_object_size`` to the whole image
+      (``max(H, W)``): 3 scales for 640 x 480, 4 for 2048 x 1536. An explicit ``num_scales``
+      too few for that range covers its top (the biggest objects), with a warning.
+
+    The tiles overlap by the largest size the scales put an object at, so every object in the
+    range lies wholly inside a tile of its scale (detections on interior tile edges are
+    dropped).
+    """
+    if object_sizes is None:
+        top = float(max(image_hw))
+        bottom = min(float(min_object_size), top)
+        if num_scales is not None:
+            lo, hi = size_prior(tile_size)
+            reach = top / (hi / lo) ** num_scales
+            if reach > bottom:
+                warnings.warn(f"{num_scales} scale(s) on a {image_hw[1]} x {image_hw[0]} image "
+                              f"cover objects of {reach:.0f}-{top:.0f} px, not down to "
+                              f"{bottom:.0f} px: raise num_scales", stacklevel=2)
+                bottom = reach
+        object_sizes = (bottom, top)
+    scales, overlap = scales_for_sizes(*object_sizes, tile_size, num_scales)
+    return tile_layout(image_hw, tile_size, scales,
+                       min(int(np.ceil(overlap - 1e-6)), tile_size - 1))
 
 
 def extract_tiles(image: Array, layout: TileLayout, pad_value: float = 0.0) -> Array:
