@@ -3,9 +3,10 @@
 ``SceneDetector.detect(image, K)`` runs pan-and-scan over the image, queries every onboarded
 object in every tile (early fusion), keeps each object's best candidates, merges all of them by
 one NMS across tiles, scales and objects, and turns every kept detection into an object with K
-pose hypotheses (top templates at least 45 degrees apart, turned by the box ray, translation
-fitted to the box). Tiling, the detector, NMS and object generation are one jitted function per
-image size (:class:`threept_jax.pipeline.detection.FullImageDetector`, the same path the training
+pose hypotheses (top templates at least 45 degrees apart, turned by the ray through the model's
+bounding-sphere centre as in training, translation fitted to the amodal box). Tiling, the
+detector, NMS and object generation are one jitted function per tile layout
+(:class:`threept_jax.pipeline.detection.FullImageDetector`, the same path the training
 evaluation runs), so repeated calls on a camera's images never recompile.
 """
 
