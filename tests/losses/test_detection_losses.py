@@ -11,6 +11,7 @@ from threept_jax.losses.detection import (
     DetectorLossConfig,
     detection_loss,
     make_targets,
+    orientation_loss,
     soft_negative_weights,
 )
 
@@ -97,15 +98,19 @@ def test_detection_loss_hand_case():
                     + focal(presence[2], 0))
     l1_ref = sum(abs(a - b) for a, b in zip(cxcywh(preds[0]), cxcywh(gt), strict=True))  # .02 + .04
     giou_ref = 0.16 / 0.176  # prediction inside the target: hull = target, GIoU = IoU
-    logits = 5.0 * bank @ emb[0] - 1.0
-    orient_ref = sum(focal(float(x), t == 1) for t, x in enumerate(logits))
+    # Orientation: every hypothesis (3 templates, under the default 8 hard negatives: all);
+    # the unmatched ones have every template negative, weighted like their presence term.
+    logits = 5.0 * emb @ bank.T - 1.0  # [3 hypotheses, 3 templates]
+    orient_ref = sum(focal(float(x), t == 1) for t, x in enumerate(logits[0]))
+    orient_ref += sum(w * focal(float(x), 0, w_neg=1.0)
+                      for w, row in zip((1 - u1, 1.0), logits[1:], strict=True) for x in row)
     np.testing.assert_allclose(float(m["loss_presence"]), presence_ref, rtol=1e-5)
     np.testing.assert_allclose(float(m["loss_l1"]), l1_ref, rtol=1e-5)
     np.testing.assert_allclose(float(m["loss_giou"]), 1 - giou_ref, rtol=1e-5)
     np.testing.assert_allclose(float(m["loss_orientation"]), orient_ref, rtol=1e-5)
     np.testing.assert_allclose(float(m["matched_iou"]), giou_ref, rtol=1e-5)
     assert float(m["num_boxes"]) == 1.0
-    assert float(m["orientation_top1"]) == float(np.argmax(logits) == 1)
+    assert float(m["orientation_top1"]) == float(np.argmax(logits[0]) == 1)
     total = 2.0 * presence_ref + 5.0 * l1_ref + 2.0 * (1 - giou_ref) + orient_ref
     np.testing.assert_allclose(float(loss), total, rtol=1e-5)
 
@@ -151,8 +156,9 @@ def test_one_to_many_matching_hand_case():
     l1_ref = sum(sum(abs(a - b) for a, b in zip(cxcywh(p), cxcywh(gt), strict=True))
                  for p in preds[:2]) / 2
     ious = [iou_xyxy(p, gt) for p in preds[:2]]  # both inside the target: GIoU = IoU
-    logits = 5.0 * emb[:2] @ bank.T - 1.0  # [2 matched, 3 templates]
-    orient_ref = sum(focal(float(x), t == 1) for row in logits for t, x in enumerate(row)) / 2
+    logits = 5.0 * emb @ bank.T - 1.0  # [3 hypotheses (2 matched), 3 templates]
+    orient_ref = sum(focal(float(x), t == 1 and i < 2)
+                     for i, row in enumerate(logits) for t, x in enumerate(row)) / 2
     assert float(m["num_boxes"]) == 2.0
     np.testing.assert_allclose(float(m["loss_presence"]), presence_ref, rtol=1e-5)
     np.testing.assert_allclose(float(m["loss_l1"]), l1_ref, rtol=1e-5)
@@ -160,3 +166,105 @@ def test_one_to_many_matching_hand_case():
     np.testing.assert_allclose(float(m["loss_orientation"]), orient_ref, rtol=1e-5)
     with pytest.raises(ValueError, match="matches_per_target"):
         DetectorLossConfig(matches_per_target=0)
+
+
+# -- orientation of every hypothesis, hard negatives (float64 NumPy reference) --------------
+
+
+def focal64(x, t, alpha=0.25, gamma=2.0):
+    """Element-wise focal loss in float64 NumPy (positive where t)."""
+    x = np.asarray(x, np.float64)
+    p = 1.0 / (1.0 + np.exp(-x))
+    return np.where(t, alpha * (1 - p) ** gamma * np.log1p(np.exp(-x)),
+                    (1 - alpha) * p**gamma * np.log1p(np.exp(x)))
+
+
+def orientation_ref(logits, positive, weight, k):
+    """Per-hypothesis orientation loss by brute force: the positive plus the k negatives of
+    highest logit (all when k = 0), each negative times the hypothesis' soft weight."""
+    out = []
+    for row, pos, w in zip(logits, positive, weight, strict=True):
+        negatives = [t for t in range(len(row)) if t != pos]
+        negatives.sort(key=lambda t: -row[t])
+        keep = negatives if k == 0 else negatives[:k]
+        total = sum(w * focal64(row[t], False) for t in keep)
+        out.append(total + (focal64(row[pos], True) if pos >= 0 else 0.0))
+    return np.asarray(out)
+
+
+def _four_hypotheses():
+    """One target (template 3 of 6) and four hypotheses: 0 matched (inside the target, most
+    confident), 1 a near miss, 2 far away, 3 a partial overlap; one padded target."""
+    gt = [0.2, 0.2, 0.6, 0.6]
+    preds = [[0.22, 0.2, 0.6, 0.58], [0.2, 0.2, 0.6, 0.4], [0.7, 0.7, 0.9, 0.9],
+             [0.4, 0.4, 0.8, 0.8]]
+    rng = np.random.default_rng(3)
+    emb = rng.normal(size=(4, 5))
+    emb /= np.linalg.norm(emb, axis=-1, keepdims=True)
+    bank = rng.normal(size=(6, 5))
+    bank /= np.linalg.norm(bank, axis=-1, keepdims=True)
+    outputs = {
+        "boxes": jnp.asarray([[cxcywh(b) for b in preds]], jnp.float32),
+        "presence_logits": jnp.asarray([[3.0, 0.0, -1.0, -0.5]], jnp.float32),
+        "embeddings": jnp.asarray(emb[None], jnp.float32),
+        "template_bank": jnp.asarray(bank[None], jnp.float32),
+        "logit_scale": jnp.asarray(4.0),
+        "logit_bias": jnp.asarray(-2.0),
+    }
+    targets = {"boxes": jnp.asarray([[cxcywh(gt), cxcywh(preds[2])]], jnp.float32),
+               "mask": jnp.asarray([[True, False]]),
+               "template_index": jnp.asarray([[3, 0]], jnp.int32)}
+    return gt, preds, emb, bank, outputs, targets
+
+
+@pytest.mark.parametrize("k", [0, 2])
+def test_orientation_trains_every_hypothesis_float64(k):
+    gt, preds, emb, bank, outputs, targets = _four_hypotheses()
+    lam = 0.5
+    # u_p by hand: near miss .4 x .2 / .16 = 0.5; far box 0; partial .2 x .2 / (.32 - .04).
+    u = [iou_xyxy(b, gt) for b in preds]
+    np.testing.assert_allclose(u[1:], [0.5, 0.0, 0.04 / 0.28], rtol=1e-12)
+    weight = [1.0, 1 - lam * u[1], 1.0, 1 - lam * u[3]]
+    logits = 4.0 * emb.astype(np.float64) @ bank.T - 2.0  # [4, 6]
+    per_hyp = orientation_ref(logits, [3, -1, -1, -1], weight, k)
+    cfg = DetectorLossConfig(soft_matching=lam, orientation_negatives=k, matches_per_target=1)
+    _, m = jax.jit(detection_loss, static_argnums=2)(outputs, targets, cfg)
+    assert float(m["num_boxes"]) == 1.0
+    np.testing.assert_allclose(float(m["loss_orientation"]), per_hyp.sum(), rtol=1e-5)
+    np.testing.assert_allclose(float(m["loss_orientation_unmatched"]), per_hyp[1:].sum(),
+                               rtol=1e-5)
+
+
+def test_hard_negative_selection_brute_force():
+    # Gradients wrt the logits are non-zero exactly at the positive and at the k negatives
+    # of highest logit (found here by sorting), scaled by the soft weight on negatives.
+    rng = np.random.default_rng(7)
+    logits = rng.normal(size=(2, 3, 9)) * 3.0
+    positive = np.asarray([[4, -1, 0], [-1, 8, -1]])
+    weight = rng.uniform(0.2, 1.0, size=(2, 3))
+    k = 3
+
+    def f(x):
+        return orientation_loss(x, jnp.asarray(positive), jnp.asarray(weight, jnp.float32),
+                                num_negatives=k, alpha=0.25, gamma=2.0)[0]
+
+    per_hyp = jax.jit(f)(jnp.asarray(logits, jnp.float32))
+    ref = orientation_ref(logits.reshape(6, 9), positive.ravel(), weight.ravel(), k)
+    np.testing.assert_allclose(np.asarray(per_hyp).ravel(), ref, rtol=1e-5)
+    grad = np.asarray(jax.grad(lambda x: jnp.sum(f(x)))(jnp.asarray(logits, jnp.float32)))
+    for b in range(2):
+        for p in range(3):
+            row, pos = logits[b, p], positive[b, p]
+            negatives = sorted((t for t in range(9) if t != pos), key=lambda t: -row[t])
+            expected = set(negatives[:k]) | ({pos} if pos >= 0 else set())
+            assert set(np.flatnonzero(grad[b, p])) == expected, (b, p)
+
+
+def test_gradients_reach_template_logits_of_unmatched_hypotheses():
+    _, _, _, _, outputs, targets = _four_hypotheses()
+    cfg = DetectorLossConfig(presence_weight=0.0, l1_weight=0.0, giou_weight=0.0)
+    grads = jax.jit(jax.grad(lambda o: detection_loss(o, targets, cfg)[0]))(outputs)
+    g = np.abs(np.asarray(grads["embeddings"]))[0].sum(-1)  # [4 hypotheses]
+    assert (g > 0).all(), g  # the matched one and the three unmatched ones
+    with pytest.raises(ValueError, match="orientation_negatives"):
+        DetectorLossConfig(orientation_negatives=-1)

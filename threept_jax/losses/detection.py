@@ -14,12 +14,18 @@ each queried with one object (DESIGN.md section 1.1, "Training"):
   so a near miss is penalised less, in proportion to its IoU, rather than counted as a full
   negative (w_p = 1 when it overlaps nothing, 1 - lambda at a perfect overlap).
 * **Boxes** (matched pairs): L1 on normalised cxcywh and 1 - GIoU.
-* **Orientation** (matched pairs): sigmoid focal loss between the hypothesis embedding's
-  logits against the template bank, ``scale * cos + bias`` [T], and a target that is 1 at the
-  positive template and 0 at every other template. The positive is the template nearest to
-  the ground-truth rotation taking the object's symmetries into account
-  (:func:`threept_jax.geometry.symmetry.nearest_templates`, computed by the input pipeline in
-  float64 and passed as ``template_index``).
+* **Orientation** (every hypothesis): sigmoid focal loss on the hypothesis embedding's logits
+  against the tile's sampled templates, ``scale * cos + bias`` [T]. A matched hypothesis has
+  one positive, the template nearest to the ground-truth rotation of its target taking the
+  object's symmetries into account (:func:`threept_jax.geometry.symmetry.nearest_templates`,
+  computed by the input pipeline in float64 and passed as ``template_index``); every other
+  template is a negative. An unmatched hypothesis has every template negative, each negative
+  term weighted by the same soft-scaled ``w_p`` as its presence term: the paper's detection
+  score is the maximum template logit, which inference takes on every patch, so every patch's
+  logits are trained. **Hard negatives**: with ``orientation_negatives`` = k > 0 only the k
+  negatives of highest logit per hypothesis (the templates most similar to it; selection
+  under stop_gradient) enter the loss beside the positive, so the loss acts on the maximum
+  that inference reads rather than on many easy negatives (k = 0 or k >= T: all).
 
 **One-to-many matching** (``matches_per_target`` = k > 1, off by default): every target is
 repeated k times before the Hungarian matching, so k hypotheses per instance are positives
@@ -60,6 +66,8 @@ class DetectorLossConfig:
     and OWL-ViT); focal alpha 0.25, gamma 2 (RetinaNet). ``soft_matching`` is lambda of the
     soft-scaled matching loss (0 turns it off).
     ``matches_per_target``: hypotheses matched to each target (1: DETR's one-to-one).
+    ``orientation_negatives``: hard negatives per hypothesis in the orientation term (0: all
+    templates of the tile).
     """
 
     cost_class: float = 2.0
@@ -75,12 +83,16 @@ class DetectorLossConfig:
     orientation_gamma: float = 2.0
     soft_matching: float = 1.0
     matches_per_target: int = 1
+    orientation_negatives: int = 8
 
     def __post_init__(self):
         if not 0.0 <= self.soft_matching <= 1.0:
             raise ValueError(f"soft_matching (lambda) must be in [0, 1], got {self.soft_matching}")
         if self.matches_per_target < 1:
             raise ValueError(f"matches_per_target must be >= 1, got {self.matches_per_target}")
+        if self.orientation_negatives < 0:
+            raise ValueError(f"orientation_negatives must be >= 0 (0: all templates), got "
+                             f"{self.orientation_negatives}")
 
 
 # -- targets ------------------------------------------------------------------------------
@@ -134,7 +146,7 @@ def repeat_targets(targets: dict[str, Array], k: int) -> dict[str, Array]:
 
 def soft_negative_weights(pred_boxes: Array, target_boxes: Array, target_mask: Array,
                           matched: Array, strength: float) -> Array:
-    """Weights [B, P] of the presence loss's negative term (soft-scaled matching loss).
+    """Weights [B, P] of the negative terms of presence and orientation (soft-scaled matching).
 
     ``w_p = 1 - strength * max_g IoU(pred_p, gt_g)`` over valid targets for unmatched
     hypotheses, 1 for matched ones (whose negative term is zero anyway). pred_boxes [B, P, 4]
@@ -151,6 +163,41 @@ def _paired_giou(a: Array, b: Array) -> Array:
     """GIoU of aligned pairs: [..., 4], [..., 4] (cxcywh) -> [...]."""
     a, b = cxcywh_to_xyxy(a)[..., None, :], cxcywh_to_xyxy(b)[..., None, :]
     return generalized_box_iou(a, b)[..., 0, 0]
+
+
+def _orientation_logits(outputs: dict[str, Array]) -> Array:
+    """[B, P, T] ``scale * cos + bias`` of every hypothesis against its tile's templates."""
+    bank = outputs["template_bank"].astype(jnp.float32)
+    emb = outputs["embeddings"].astype(jnp.float32)
+    emb = emb / jnp.maximum(jnp.linalg.norm(emb, axis=-1, keepdims=True), 1e-6)
+    eq = "bpe,te->bpt" if bank.ndim == 2 else "bpe,bte->bpt"
+    return outputs["logit_scale"] * jnp.einsum(eq, emb, bank) + outputs["logit_bias"]
+
+
+def orientation_loss(logits: Array, positive_index: Array, negative_weight: Array, *,
+                     num_negatives: int, alpha: float | None,
+                     gamma: float) -> tuple[Array, Array]:
+    """Per-hypothesis orientation focal loss [B, P] and the positive mask [B, P, T].
+
+    logits [B, P, T]; positive_index [B, P] is the positive template of a matched hypothesis,
+    -1 for an unmatched one (all its templates negative); negative_weight [B, P] scales every
+    negative term of a hypothesis (soft-scaled matching). With 0 < num_negatives < T only the
+    ``num_negatives`` negatives of highest logit per hypothesis count (hard negatives, chosen
+    under stop_gradient); the positive always counts.
+    """
+    num_t = logits.shape[-1]
+    positives = positive_index[..., None] == jnp.arange(num_t)  # [B, P, T]
+    fl = sigmoid_focal_loss(logits, positives, alpha=alpha, gamma=gamma,
+                            negative_weight=negative_weight[..., None])
+    if not 0 < num_negatives < num_t:
+        return jnp.sum(fl, -1), positives
+    ranked = jnp.where(positives, -jnp.inf, jax.lax.stop_gradient(logits))
+    _, hard = jax.lax.top_k(ranked, num_negatives)  # [B, P, k]
+    hard_loss = jnp.take_along_axis(fl, hard, -1)
+    hard_is_negative = ~jnp.take_along_axis(positives, hard, -1)
+    per_hyp = (jnp.sum(jnp.where(positives, fl, 0.0), -1)
+               + jnp.sum(jnp.where(hard_is_negative, hard_loss, 0.0), -1))
+    return per_hyp, positives
 
 
 def _check_orientation_inputs(outputs, targets, config) -> None:
@@ -227,21 +274,20 @@ def detection_loss(outputs: dict[str, Array], targets: dict[str, Array],
             + config.giou_weight * loss_giou)
 
     if config.orientation_weight:
-        bank = outputs["template_bank"].astype(jnp.float32)
-        emb = jnp.take_along_axis(outputs["embeddings"].astype(jnp.float32),
-                                  safe_idx[..., None], axis=1)  # [B, M, E]
-        emb = emb / jnp.maximum(jnp.linalg.norm(emb, axis=-1, keepdims=True), 1e-6)
-        eq = "bme,te->bmt" if bank.ndim == 2 else "bme,bte->bmt"
-        logits = outputs["logit_scale"] * jnp.einsum(eq, emb, bank) + outputs["logit_bias"]
-        num_t = logits.shape[-1]
-        positives = jnp.asarray(targets["template_index"], jnp.int32)[..., None] == jnp.arange(
-            num_t)
-        fl = sigmoid_focal_loss(logits, positives, alpha=config.orientation_alpha,
-                                gamma=config.orientation_gamma)
-        loss_orient = jnp.sum(jnp.where(valid[..., None], fl, 0.0)) / num_boxes
+        # The target matched to each hypothesis gives its positive template; -1: unmatched.
+        tgt_template = jnp.asarray(targets["template_index"], jnp.int32)
+        pos_index = jnp.where(is_matched,
+                              jnp.sum(jnp.where(onehot, tgt_template[..., None], 0), axis=1), -1)
+        logits = _orientation_logits(outputs)  # [B, P, T]
+        per_hyp, positives = orientation_loss(
+            logits, pos_index, w_neg, num_negatives=config.orientation_negatives,
+            alpha=config.orientation_alpha, gamma=config.orientation_gamma)
+        loss_orient = jnp.sum(per_hyp) / num_boxes
         top1 = jnp.take_along_axis(positives, jnp.argmax(logits, -1)[..., None], -1)[..., 0]
         metrics["loss_orientation"] = loss_orient
-        metrics["orientation_top1"] = jnp.sum(valid & top1) / num_boxes
+        metrics["loss_orientation_unmatched"] = (
+            jnp.sum(jnp.where(is_matched, 0.0, per_hyp)) / num_boxes)
+        metrics["orientation_top1"] = jnp.sum(is_matched & top1) / num_boxes
         loss = loss + config.orientation_weight * loss_orient
 
     metrics["loss"] = loss

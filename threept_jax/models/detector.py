@@ -96,6 +96,35 @@ def patch_scores(presence_logits: Array, detection_logits: Array | None = None) 
     return score
 
 
+#: What ``detection_scores`` can rank patches by (see its docstring).
+SCORE_MODES = ("template", "presence", "product")
+
+
+def detection_scores(presence_logit: Array, template_logits: Array | None, mode: str) -> Array:
+    """Per-hypothesis detection score in [0, 1]: presence [..., P], template logits [..., P, T].
+
+    ``"template"``: ``sigmoid(max_t template_logits)``, the paper's detection score (the
+    maximum similarity over all orientation templates, section 3.1); ``"presence"``:
+    ``sigmoid(presence_logit)`` (``template_logits`` may be None); ``"product"``: the two
+    multiplied. The loss trains the template logits of every hypothesis
+    (:mod:`threept_jax.losses.detection`), so each mode is a score of its own.
+    """
+    if mode not in SCORE_MODES:
+        raise ValueError(f"unknown detection score mode {mode!r}; use one of {SCORE_MODES}")
+    presence = jax.nn.sigmoid(jnp.asarray(presence_logit, jnp.float32))
+    if mode == "presence":
+        return presence
+    if template_logits is None:
+        raise ValueError(f"detection score mode {mode!r} needs the template logits [..., P, T]; "
+                         "pass them, or use mode='presence'")
+    template_logits = jnp.asarray(template_logits, jnp.float32)
+    if template_logits.shape[:-1] != presence.shape:
+        raise ValueError(f"template_logits must be [..., P, T] with [..., P] = {presence.shape}, "
+                         f"got {template_logits.shape}")
+    template = jax.nn.sigmoid(jnp.max(template_logits, axis=-1))
+    return template if mode == "template" else presence * template
+
+
 class Detector(nnx.Module):
     """3PT-D (see the module docstring for the stages and shapes)."""
 
