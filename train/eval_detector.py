@@ -26,7 +26,7 @@ val tiles cut as for training (:class:`~threept_jax.data.detector_input.SampleTi
 anchored on a ground-truth instance at the training scale, each tile queried with one
 object, a fixed seed, no photometric augmentation), so they say how the model does where
 training puts objects, not how it finds them. Per tile the patches are scored with
-``patch_scores``, decoded with ``boxes_to_pixels`` and reduced by NMS to
+``detection_scores`` (the default mode), decoded with ``boxes_to_pixels`` and reduced by NMS to
 ``eval.max_detections``; each kept detection carries its top template.
 
 * ``ap``, ``ap50``, ``ap75``: COCO box AP with the BOP ignore rule, every tile an image whose
@@ -63,7 +63,7 @@ from threept_jax.eval.coco import evaluate_coco
 from threept_jax.eval.pose_error import PreparedModel, prepare_model
 from threept_jax.geometry.boxes import box_iou, nms
 from threept_jax.geometry.symmetry import symmetric_angle_deg
-from threept_jax.models.detector import boxes_to_pixels, orientation_scores, patch_scores
+from threept_jax.models.detector import boxes_to_pixels, detection_scores, orientation_scores
 from threept_jax.pipeline.detection import (
     DEFAULT_SCORE_MODE,
     SCORE_MODES,
@@ -311,7 +311,8 @@ class DetectorEvaluator:
             prior = prior_all[batch["obj_index"]]
             bank = bank_all[batch["obj_index"]]
             out = model(batch["image"], prior, bank)
-            scores = patch_scores(out["presence_logits"], out["detection_logits"])  # [B, P]
+            scores = detection_scores(out["presence_logits"], out["detection_logits"],
+                                      DEFAULT_SCORE_MODE)  # [B, P]
             boxes = boxes_to_pixels(out["boxes"], (tile, tile))  # [B, P, 4]
             keep, ok = jax.vmap(lambda b, s: nms(b, s, iou_thr, max_det))(boxes, scores)
 

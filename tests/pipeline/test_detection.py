@@ -8,13 +8,12 @@ from flax import nnx
 
 from threept_jax.geometry.grids import super_fibonacci_rotations
 from threept_jax.models.configs import DetectorConfig
-from threept_jax.models.detector import Detector
+from threept_jax.models.detector import Detector, detection_scores
 from threept_jax.pipeline.detection import (
     SCORE_MODES,
     DetectionSettings,
     FullImageDetector,
     ObjectQueries,
-    detection_scores,
     model_points,
 )
 
@@ -27,7 +26,7 @@ def test_score_modes_match_a_float64_reference():
     for mode in SCORE_MODES:
         got = detection_scores(jnp.asarray(p, jnp.float32), jnp.asarray(d, jnp.float32), mode)
         np.testing.assert_allclose(np.asarray(got), ref[mode], rtol=1e-5, err_msg=mode)
-    with pytest.raises(ValueError, match="unknown score mode 'max'"):
+    with pytest.raises(ValueError, match="unknown detection score mode 'max'"):
         detection_scores(jnp.zeros(3), jnp.zeros(3), "max")
     with pytest.raises(ValueError, match="score_modes"):
         DetectionSettings(score_modes=("product", "best"))

@@ -82,31 +82,21 @@ def boxes_to_pixels(boxes: Array, image_hw: tuple[int, int]) -> Array:
     return cxcywh_to_xyxy(boxes) * scale
 
 
-def patch_scores(presence_logits: Array, detection_logits: Array | None = None) -> Array:
-    """Per-patch detection score in [0, 1], [B, P].
-
-    ``sigmoid(presence)``, times ``sigmoid(detection_logit)`` (the best template match) when
-    given. Presence is the head trained against background on every patch; the template
-    match is the paper's "detection score", trained on matched hypotheses only, so it is
-    used as a factor rather than alone.
-    """
-    score = jax.nn.sigmoid(presence_logits.astype(jnp.float32))
-    if detection_logits is not None:
-        score = score * jax.nn.sigmoid(detection_logits.astype(jnp.float32))
-    return score
+#: What :func:`detection_scores` can rank patches by; the default is what inference and the
+#: training evaluation's headline use until full-image AP says otherwise (issue 13).
+SCORE_MODES = ("product", "presence", "template")
+DEFAULT_SCORE_MODE = "product"
 
 
-#: What ``detection_scores`` can rank patches by (see its docstring).
-SCORE_MODES = ("template", "presence", "product")
+def detection_scores(presence_logit: Array, detection_logit: Array | None, mode: str) -> Array:
+    """Per-hypothesis detection score in [0, 1] from the presence logits [..., P] and the best
+    template logits [..., P] (``Detector.__call__``'s ``detection_logits``, the maximum over
+    the template bank).
 
-
-def detection_scores(presence_logit: Array, template_logits: Array | None, mode: str) -> Array:
-    """Per-hypothesis detection score in [0, 1]: presence [..., P], template logits [..., P, T].
-
-    ``"template"``: ``sigmoid(max_t template_logits)``, the paper's detection score (the
-    maximum similarity over all orientation templates, section 3.1); ``"presence"``:
-    ``sigmoid(presence_logit)`` (``template_logits`` may be None); ``"product"``: the two
-    multiplied. The loss trains the template logits of every hypothesis
+    ``"template"``: ``sigmoid(best template logit)``, the paper's detection score (the maximum
+    similarity over all orientation templates, section 3.1); ``"presence"``:
+    ``sigmoid(presence)`` (``detection_logit`` may be None); ``"product"``: the two multiplied.
+    The loss trains the template logits of every hypothesis
     (:mod:`threept_jax.losses.detection`), so each mode is a score of its own.
     """
     if mode not in SCORE_MODES:
@@ -114,14 +104,14 @@ def detection_scores(presence_logit: Array, template_logits: Array | None, mode:
     presence = jax.nn.sigmoid(jnp.asarray(presence_logit, jnp.float32))
     if mode == "presence":
         return presence
-    if template_logits is None:
-        raise ValueError(f"detection score mode {mode!r} needs the template logits [..., P, T]; "
-                         "pass them, or use mode='presence'")
-    template_logits = jnp.asarray(template_logits, jnp.float32)
-    if template_logits.shape[:-1] != presence.shape:
-        raise ValueError(f"template_logits must be [..., P, T] with [..., P] = {presence.shape}, "
-                         f"got {template_logits.shape}")
-    template = jax.nn.sigmoid(jnp.max(template_logits, axis=-1))
+    if detection_logit is None:
+        raise ValueError(f"detection score mode {mode!r} needs the best template logits "
+                         "[..., P]; pass them, or use mode='presence'")
+    detection_logit = jnp.asarray(detection_logit, jnp.float32)
+    if detection_logit.shape != presence.shape:
+        raise ValueError(f"detection_logit must have the presence logits' shape "
+                         f"{presence.shape}, got {detection_logit.shape}")
+    template = jax.nn.sigmoid(detection_logit)
     return template if mode == "template" else presence * template
 
 

@@ -28,16 +28,19 @@ import numpy as np
 from flax import nnx
 
 from threept_jax.geometry.boxes import nms
-from threept_jax.models.detector import orientation_scores, patch_scores
+from threept_jax.models.detector import (
+    DEFAULT_SCORE_MODE,
+    SCORE_MODES,
+    detection_scores,
+    orientation_scores,
+)
 from threept_jax.pipeline import pan_and_scan as pns
 from threept_jax.pipeline.object_generation import single_view_hypotheses
 
 Array = jax.Array
 
-#: Per-patch detection scores (:func:`detection_scores`).
-SCORE_MODES = ("product", "presence", "template")
-#: The score inference uses (``infer.detect.SceneDetector``).
-DEFAULT_SCORE_MODE = "product"
+__all__ = ["DEFAULT_SCORE_MODE", "SCORE_MODES", "DetectionSettings", "FullImageDetector",
+           "ObjectQueries", "detection_function", "model_points"]
 #: Model points kept per object for fitting boxes (object generation).
 NUM_POINTS = 1024
 
@@ -53,23 +56,6 @@ def model_points(vertices: np.ndarray, n: int = NUM_POINTS) -> np.ndarray:
     extremes = np.concatenate([np.argmin(v, 0), np.argmax(v, 0)])
     idx[: len(extremes)] = extremes
     return v[idx]
-
-
-def detection_scores(presence_logits: Array, detection_logits: Array, mode: str) -> Array:
-    """Per-patch score in [0, 1], [..., P], from the presence logits and the best template
-    logits (``Detector.__call__``'s ``detection_logits``, the max over the template bank).
-
-    ``"product"``: sigmoid(presence) x sigmoid(best template logit) (``patch_scores``);
-    ``"presence"``: sigmoid(presence); ``"template"``: sigmoid(best template logit), the paper's
-    "maximum similarity score over all orientation templates".
-    """
-    if mode == "product":
-        return patch_scores(presence_logits, detection_logits)
-    if mode == "presence":
-        return patch_scores(presence_logits)
-    if mode == "template":
-        return jax.nn.sigmoid(detection_logits.astype(jnp.float32))
-    raise ValueError(f"unknown score mode {mode!r}; use one of {SCORE_MODES}")
 
 
 @dataclasses.dataclass(frozen=True)
