@@ -77,8 +77,9 @@ from threept_jax.geometry.diameter import MIN_DIAMETER_MM
 from threept_jax.geometry.symmetry import Symmetries, symmetry_transforms
 
 BANK_FORMAT_VERSION = 1
-#: Default render side (pixels) and template count of the banks datagen writes and inference
-#: onboarding renders; 5140 templates is the paper's bank (``grids.NUM_TEMPLATES``).
+#: Default render side (pixels) and template count of the banks datagen writes; the side must
+#: equal the detector's ``render_size`` (tiny 32, small 112, paper 224: ``check_render_size``);
+#: 5140 templates is the paper's bank (``grids.NUM_TEMPLATES``).
 BANK_SIZE = 96
 BANK_TEMPLATES = 5140
 
