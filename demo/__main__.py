@@ -107,7 +107,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
         held_out = saved_metrics(workdir, args.steps)
         print("   already trained to the last step (delete the folder to retrain)")
-    print("   held-out tiles: " + ", ".join(
+    print("   held-out evaluation (full images; tile_diagnostic/* on ground-truth crops): " + ", ".join(
         f"{k.removeprefix('eval/')}={v:.3f}" for k, v in held_out.items()))
     _done(start)
 
@@ -130,7 +130,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     print(f"\ndone in {report['minutes']:.1f} min. Held-out objects, full images: box AP50 "
           f"{boxes.get('ap50', float('nan')):.3f}, BOP 6D AP {pose.get('ap', float('nan')):.4f} "
           f"(diagnostic, crops anchored on a ground-truth instance: tile AP50 "
-          f"{held_out.get('eval/ap50', float('nan')):.3f})."
+          f"{held_out.get('eval/tile_diagnostic/ap50', float('nan')):.3f})."
           f"\nReport {out / 'report.json'}, overlays {out / 'results' / 'overlays'}")
     return report
 
