@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import pathlib
-import statistics
 import sys
 import time
 
@@ -34,7 +33,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import trimesh  # noqa: E402
 from flax import nnx  # noqa: E402
-from flops import cost_flops, matmul_flops_per_s, vit_forward_flops  # noqa: E402
+from flops import cold_and_warm, cost_flops, matmul_flops_per_s, vit_forward_flops  # noqa: E402
 
 from infer.detect import SceneDetector  # noqa: E402
 from infer.onboarding import ONBOARD_TEMPLATES, Onboarder  # noqa: E402
@@ -70,15 +69,7 @@ def latency(args) -> None:
     for n in args.objects:
         det = SceneDetector(model, cfg, objects[:n], score_threshold=0.0)
         tiles = det.layout((h, w)).num_tiles
-        t0 = time.perf_counter()
-        det.detect(image, K)
-        cold = time.perf_counter() - t0
-        warm_runs = []
-        for _ in range(args.repeats):
-            t0 = time.perf_counter()
-            det.detect(image, K)
-            warm_runs.append(time.perf_counter() - t0)
-        warm = statistics.median(warm_runs)
+        cold, warm = cold_and_warm(lambda det=det: det.detect(image, K), args.repeats)
         per_object = warm / n
         per_object_1 = per_object_1 or per_object
         print(f"{n:>8} {tiles:>10} {cold:>8.2f} {warm:>8.3f} {per_object:>8.3f} "

@@ -1,4 +1,4 @@
-"""FLOP counting and the in-process matmul reference shared by the benchmarks.
+"""FLOP counting, cold/warm timing and the in-process matmul reference shared by the benchmarks.
 
 An MFU-style figure that needs no datasheet: a program's achieved FLOP/s (FLOPs from XLA's cost
 analysis of the compiled program, with an analytic ViT count beside it as a cross-check) divided
@@ -7,6 +7,7 @@ by the FLOP/s of a plain matmul measured in the same process on the same device.
 
 from __future__ import annotations
 
+import statistics
 import time
 
 import jax
@@ -57,3 +58,17 @@ def cost_flops(compiled) -> float | None:
     if not cost or "flops" not in cost:
         return None
     return float(cost["flops"])
+
+
+def cold_and_warm(call, repeats: int) -> tuple[float, float]:
+    """Seconds of the first ``call()`` (compilation included) and the median of ``repeats``
+    more (warm)."""
+    t0 = time.perf_counter()
+    call()
+    cold = time.perf_counter() - t0
+    warm = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        call()
+        warm.append(time.perf_counter() - t0)
+    return cold, statistics.median(warm)

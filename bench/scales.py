@@ -22,9 +22,7 @@ from __future__ import annotations
 
 import argparse
 import pathlib
-import statistics
 import sys
-import time
 import warnings
 
 import numpy as np
@@ -34,6 +32,7 @@ sys.path.insert(0, str(ROOT))
 
 import trimesh  # noqa: E402
 from flax import nnx  # noqa: E402
+from flops import cold_and_warm  # noqa: E402
 
 from infer.detect import SceneDetector  # noqa: E402
 from infer.onboarding import Onboarder  # noqa: E402
@@ -93,8 +92,8 @@ def main(argv=None):
     model = Detector(cfg, rngs=nnx.Rngs(0))
     tm = trimesh.creation.box((args.diameter / np.sqrt(3),) * 3)
     mesh = Mesh(np.asarray(tm.vertices, np.float32), np.asarray(tm.faces, np.int32), name="cube")
-    objects = Onboarder(model, cfg, "untrained@0", cache_dir=None, num_templates=48,
-                        bank_size=32).onboard_all({1: mesh}, show_progress=False)
+    objects = Onboarder(model, cfg, "untrained@0", cache_dir=None,
+                        num_templates=48).onboard_all({1: mesh}, show_progress=False)
     rng = np.random.default_rng(0)
     print(f"\ndetection seconds per image ({args.variant}, {args.image_size} px tile, untrained, "
           "1 object)")
@@ -107,15 +106,8 @@ def main(argv=None):
             det = SceneDetector(model, cfg, objects, score_threshold=0.0)
             det.layout = lambda image_hw, K=None, lay=lay: lay
             image = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
-            t0 = time.perf_counter()
-            det.detect(image, K)
-            cold = time.perf_counter() - t0
-            warm = []
-            for _ in range(args.repeats):
-                t0 = time.perf_counter()
-                det.detect(image, K)
-                warm.append(time.perf_counter() - t0)
-            warm = statistics.median(warm)
+            cold, warm = cold_and_warm(lambda det=det, image=image, K=K: det.detect(image, K),
+                                       args.repeats)
             warm_ref = warm if warm_ref is None else warm_ref
             print(f"  {w}x{h} {mode:24s} tiles {lay.num_tiles:5d}  cold {cold:7.2f}  "
                   f"warm {warm:7.3f}  old/this {warm_ref / warm:5.2f}x", flush=True)
