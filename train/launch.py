@@ -79,6 +79,9 @@ def main(argv) -> None:
         run_config.check_config(config)
     except run_config.ConfigError as e:
         _fail(f"{e} (in {flags.FLAGS['config'].config_filename})")
+    if config.trainer != "detector":
+        _fail(f"unknown trainer {config.trainer!r} in the config (known: detector); set "
+              "--config.trainer=detector")
     if not flags.FLAGS["verbosity"].present:
         # Orbax logs every checkpoint step at INFO; our own progress goes to the console.
         logging.set_verbosity(logging.WARNING)
@@ -88,8 +91,6 @@ def main(argv) -> None:
     sharding.maybe_initialize_distributed(config.distributed)
     import jax
 
-    if config.trainer != "detector":
-        raise app.UsageError(f"unknown trainer {config.trainer!r} in the config (known: detector)")
     from train import trainer_detector
 
     print(f"process {jax.process_index()}/{jax.process_count()}, devices: {jax.devices()}",
