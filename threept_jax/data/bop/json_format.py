@@ -37,19 +37,39 @@ def write_json_atomic(path, content) -> None:
     atomic_write_bytes(pathlib.Path(path), _json_dumps_bop(content).encode())
 
 
-def _load_json(path: pathlib.Path):
-    """Parse a JSON file; any unreadable content is a ValueError naming the file."""
+def _short(v, n: int = 60) -> str:
+    """repr of ``v`` cut to ``n`` characters (a garbage file can hold huge values)."""
+    r = repr(v)
+    return r if len(r) <= n else r[: n - 3] + "..."
+
+
+def _read_text(path: pathlib.Path, what: str) -> str:
+    """The UTF-8 text of a BOP file (a leading BOM is dropped): FileNotFoundError when it is
+    missing, ValueError naming the file and the first undecodable line when it is not UTF-8."""
     if not path.is_file():
-        raise FileNotFoundError(f"missing BOP file {path}")
+        raise FileNotFoundError(f"{what} {path} does not exist")
+    data = path.read_bytes()
     try:
-        with open(path, encoding="utf-8") as f:
-            return json.load(f)
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path} is not valid JSON ({e}); the file is probably truncated") from e
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError as e:
-        raise ValueError(f"{path} is not UTF-8 text ({e}): is it a JSON file?") from None
-    except (ValueError, RecursionError) as e:  # e.g. an integer literal of 5000 digits
-        raise ValueError(f"{path} cannot be read as BOP JSON ({type(e).__name__}: {e})") from None
+        line = data[: e.start].count(b"\n") + 1
+        raise ValueError(
+            f"{path}:{line}: not UTF-8 text (byte {e.start}: {e.reason}): {path.name} is not "
+            f"UTF-8, so it is no {what}"
+        ) from None
+
+
+def _load_json(path: pathlib.Path, what: str = "BOP JSON file"):
+    """Parse a JSON file; any unreadable content is a ValueError naming the file."""
+    text = _read_text(path, what)
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise ValueError(f"{path}: JSON nested too deeply to be a {what}") from None
+    except ValueError as e:  # json.JSONDecodeError, or an integer literal of 5000 digits
+        raise ValueError(
+            f"{path} is not valid JSON ({_short(str(e), 200)}); is the file truncated?"
+        ) from None
 
 
 def _int_keys(d, path) -> dict:

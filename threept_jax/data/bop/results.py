@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import pathlib
 import re
@@ -10,7 +9,7 @@ from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from threept_jax.data.bop.json_format import write_json_atomic
+from threept_jax.data.bop.json_format import _load_json, _read_text, _short, write_json_atomic
 from threept_jax.data.bop.types import POSE_CSV_HEADER, Detection2D, PoseEstimate
 from threept_jax.data.files import atomic_write_bytes
 from threept_jax.geometry.validate import validate_rotation
@@ -46,28 +45,6 @@ def write_pose_results(path, estimates: Iterable[PoseEstimate], time_tol: float 
             )
         )
     atomic_write_bytes(pathlib.Path(path), ("\n".join(lines) + "\n").encode())
-
-
-def _short(v, n: int = 60) -> str:
-    """repr of ``v`` cut to ``n`` characters (a garbage file can hold huge values)."""
-    r = repr(v)
-    return r if len(r) <= n else r[: n - 3] + "..."
-
-
-def _read_text(path: pathlib.Path, what: str) -> str:
-    """The UTF-8 text of a results file (a leading BOM is dropped); ValueError naming the file
-    and the first undecodable line when it is not UTF-8."""
-    if not path.is_file():
-        raise FileNotFoundError(f"results file {path} does not exist")
-    data = path.read_bytes()
-    try:
-        return data.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        line = data[: e.start].count(b"\n") + 1
-        raise ValueError(
-            f"{path}:{line}: not UTF-8 text (byte {e.start}: {e.reason}); a {what} is a "
-            "UTF-8 text file"
-        ) from None
 
 
 def _finite(value: float, what: str, where: str) -> float:
@@ -319,15 +296,7 @@ def read_detection_results(path) -> list[Detection2D]:
     ``segmentation`` counts as absent (the toolkit writes ``[]`` and ``{}``). Every problem
     raises ValueError naming the file and the entry."""
     path = pathlib.Path(path)
-    text = _read_text(path, "2D results JSON")
-    try:
-        raw = json.loads(text)
-    except RecursionError:
-        raise ValueError(f"{path}: JSON nested too deeply to be a 2D results file") from None
-    except ValueError as e:  # json.JSONDecodeError, or an integer too long to convert
-        raise ValueError(
-            f"{path} is not valid JSON ({_short(str(e), 200)}); is the file truncated?"
-        ) from None
+    raw = _load_json(path, "2D results file")
     if not isinstance(raw, list):
         raise ValueError(
             f"{path}: a 2D results file must be a JSON list of detections, got a JSON "
