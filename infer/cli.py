@@ -38,26 +38,24 @@ def _int_at_least(low: int):
     return parse
 
 
-def _fraction(text: str) -> float:
-    """An argparse ``type``: a number in [0, 1]."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number in [0, 1], got {text!r}") from None
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {text}")
-    return value
+def _number_in(accepts, rule: str):
+    """An argparse ``type``: a float for which ``accepts(value)`` holds (NaN never does);
+    ``rule`` says which, e.g. "in [0, 1]"."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+        if not accepts(value):
+            raise argparse.ArgumentTypeError(f"must be {rule}, got {text}")
+        return value
+
+    return parse
 
 
-def _positive(text: str) -> float:
-    """An argparse ``type``: a finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}") from None
-    if not 0.0 < value < float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
-    return value
+_fraction = _number_in(lambda v: 0.0 <= v <= 1.0, "in [0, 1]")
+_positive = _number_in(lambda v: 0.0 < v < float("inf"), "a finite number > 0")
 
 
 def _step(text: str) -> str | int:
