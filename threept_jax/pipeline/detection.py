@@ -205,11 +205,13 @@ class FullImageDetector:
 
     def compiled(self, image_hw: tuple[int, int],
                  object_sizes: tuple[float, float] | None = None):
-        """The jitted function for one tile layout, built once."""
-        layout = self.layout((int(image_hw[0]), int(image_hw[1])), object_sizes)
-        key = (layout.image_hw, layout.scales, layout.tile_origin.tobytes())
+        """The jitted function for one image size and expected object sizes, built once (the
+        layout is planned only then, not per image)."""
+        image_hw = (int(image_hw[0]), int(image_hw[1]))
+        key = (image_hw, None if object_sizes is None else tuple(map(float, object_sizes)))
         if key not in self._fns:
-            fn = detection_function(self.graphdef, layout, self.settings)
+            fn = detection_function(self.graphdef, self.layout(image_hw, object_sizes),
+                                    self.settings)
             self._fns[key] = jax.jit(fn, **self.jit_kwargs)
         return self._fns[key]
 
