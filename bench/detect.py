@@ -10,7 +10,8 @@ tower's forward throughput against a plain matmul.
 2. Forward throughput. The image tower (``Detector.detect``: patch embedding, early fusion with
    48 prior tokens, the ViT, the heads) at ``--forward-variant`` (B/16), 512 px tiles, float32:
    FLOPs from XLA's cost analysis (analytic ViT count beside it), achieved FLOP/s, and the ratio
-   against an n x n x n float32 matmul's FLOP/s measured in the same process.
+   against an n x n x n float32 matmul's FLOP/s measured in the same process, and one layer's
+   attention core (``models.vit.attention_xla``) against ``jax.nn.dot_product_attention``.
 
     python bench/detect.py [--variant tiny/16 --tile 128] [--objects 1 5 20] [--repeats 3]
         [--image 640 480] [--forward-variant B/16] [--forward-batch 1] [--skip-forward]
@@ -39,6 +40,7 @@ from infer.detect import SceneDetector  # noqa: E402
 from infer.onboarding import ONBOARD_TEMPLATES, Onboarder  # noqa: E402
 from threept_jax.models.configs import DetectorConfig  # noqa: E402
 from threept_jax.models.detector import Detector  # noqa: E402
+from threept_jax.models.vit import attention_xla  # noqa: E402
 from threept_jax.render import Mesh  # noqa: E402
 
 
@@ -114,6 +116,19 @@ def forward(args) -> None:
           f"{analytic / 1e9:.1f} G")
     print(f"  achieved {achieved / 1e9:.1f} GFLOP/s; 2048^3 float32 matmul {ref / 1e9:.1f} "
           f"GFLOP/s; ratio {achieved / ref:.2f} (goal >= 0.60)")
+    # Where attention's time goes: our XLA path against jax.nn.dot_product_attention's, one
+    # layer's q, k, v of this forward (heads x tokens x head width).
+    arch = cfg.vit
+    q = jnp.asarray(np.random.default_rng(1).standard_normal(
+        (b, tokens, arch.num_heads, arch.head_dim)), jnp.float32)
+    ours = jax.jit(lambda q: attention_xla(q, q, q))
+    ref_attn = jax.jit(lambda q: jax.nn.dot_product_attention(q, q, q))
+    t_ours = min(cold_and_warm(lambda: jax.block_until_ready(ours(q)), args.repeats)[1]
+                 for _ in range(2))
+    t_ref = min(cold_and_warm(lambda: jax.block_until_ready(ref_attn(q)), args.repeats)[1]
+                for _ in range(2))
+    print(f"  attention core per layer: attention_xla {t_ours * 1e3:.1f} ms, "
+          f"jax.nn.dot_product_attention {t_ref * 1e3:.1f} ms ({t_ref / t_ours:.2f}x)")
 
 
 def main() -> None:
