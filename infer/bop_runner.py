@@ -89,6 +89,8 @@ def run_bop(args) -> dict:
     renderer = PoseRenderer(objects)
     args.out.mkdir(parents=True, exist_ok=True)
     poses, dets2d, empty = [], [], []
+    overlay_threshold = (args.score_threshold if args.overlay_threshold is None
+                         else args.overlay_threshold)
     for n, (scene_id, im_id) in enumerate(tqdm(images, desc="images", unit="img", dynamic_ncols=True)):
         scene = split.scene(scene_id)
         image, K = scene.image(im_id), scene.cameras[im_id].K
@@ -113,7 +115,11 @@ def run_bop(args) -> dict:
                                           (x0, y0, x1 - x0, y1 - y0), bop.mask_to_rle(m), elapsed))
         if n < args.overlays:
             (args.out / "overlays").mkdir(exist_ok=True)
-            canvas = draw_detections(image, dets, masks, caption=caption)
+            shown = [(d, m) for d, m in zip(dets, masks) if d.score >= overlay_threshold]
+            if dets and not shown:
+                caption = empty_caption(overlay_threshold, dets[0].score)
+            canvas = draw_detections(image, [d for d, _ in shown], [m for _, m in shown],
+                                     caption=caption)
             cv2.imwrite(str(args.out / "overlays" / f"{scene_id:06d}_{im_id:06d}.png"),
                         cv2.cvtColor(canvas, cv2.COLOR_RGB2BGR))
     stem = f"{args.method}_{ds.name}-{args.split}"

@@ -8,13 +8,10 @@ parameters alone, on the default device, without the optimizer state or the data
 
 from __future__ import annotations
 
-import warnings
-
 import jax
-import orbax.checkpoint as ocp
 from flax import nnx
 
-from threept_jax.data.run_dir import STATE_ITEM, RunDir
+from threept_jax.data.run_dir import RunDir
 from threept_jax.models.configs import DetectorConfig
 from threept_jax.models.detector import Detector
 
@@ -43,15 +40,8 @@ def load_detector(workdir, step: int | str = "best", dtype: str | None = None
     abstract = nnx.eval_shape(lambda: Detector(cfg, rngs=nnx.Rngs(0)))
     graphdef, abstract_params = nnx.split(abstract, nnx.Param)
     device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-    target = {"params": jax.tree.map(
-        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device),
-        nnx.to_pure_dict(abstract_params))}
-    with ocp.CheckpointManager(run.checkpoint_dir) as manager, warnings.catch_warnings():
-        # Only the parameters are restored, with their shardings given; Orbax still warns about
-        # the other items it skips.
-        warnings.filterwarnings("ignore", message="Sharding info not provided")
-        restored = manager.restore(step, args=ocp.args.Composite(**{
-            STATE_ITEM: ocp.args.PyTreeRestore(item=target, partial_restore=True)}))
-    nnx.replace_by_pure_dict(abstract_params, restored[STATE_ITEM]["params"])
+    target = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device),
+                          nnx.to_pure_dict(abstract_params))
+    nnx.replace_by_pure_dict(abstract_params, run.restore_params(step, target))
     model = nnx.merge(graphdef, abstract_params)
     return model, cfg, step

@@ -113,6 +113,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--models-subdir", default="models", help="meshes to onboard")
     b.add_argument("--method", default="threept", help="method name in the result file names")
     b.add_argument("--evaluate", action="store_true", help="also run the BOP evaluator")
+    b.add_argument("--overlay-threshold", type=_fraction, default=None,
+                   help="draw only detections scoring at least this on the overlays (default: "
+                        "--score-threshold); e.g. the f1_threshold --evaluate prints for a "
+                        "validation split, while a low --score-threshold keeps every detection "
+                        "for AP")
     i = sub.add_parser("images", help="run on images with given meshes and cameras",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     _common(i)

@@ -30,13 +30,27 @@ def caption_band_height(image_hw: tuple[int, int]) -> int:
     return 18 * max(1, round(max(image_hw) / 640))
 
 
+#: Overlays narrower than this are enlarged by a whole factor (readable labels and contours).
+MIN_OVERLAY_WIDTH = 640
+
+
 def draw_detections(image: np.ndarray, detections: Sequence[Detection],
                     masks: Sequence[np.ndarray] | None = None,
                     names: Mapping[int, str] | None = None, max_draw: int = 50,
                     caption: str | None = None) -> np.ndarray:
     """uint8 RGB copy of ``image`` with boxes, ``name score`` labels and mask contours, and
-    ``caption`` (if given) in white on a black band at the top (:func:`caption_band_height`)."""
-    canvas = np.ascontiguousarray(np.asarray(image, np.uint8).copy())
+    ``caption`` (if given) in white on a black band at the top (:func:`caption_band_height`).
+
+    An image narrower than :data:`MIN_OVERLAY_WIDTH` is enlarged by the smallest whole factor
+    that reaches it (bilinear; masks nearest, boxes scaled), so that labels stay legible."""
+    image = np.asarray(image, np.uint8)
+    up = max(1, -(-MIN_OVERLAY_WIDTH // image.shape[1]))
+    if up > 1:
+        image = cv2.resize(image, None, fx=up, fy=up, interpolation=cv2.INTER_LINEAR)
+        if masks is not None:
+            masks = [cv2.resize(m.astype(np.uint8), None, fx=up, fy=up,
+                                interpolation=cv2.INTER_NEAREST) for m in masks]
+    canvas = np.ascontiguousarray(image.copy())
     scale = max(1, round(max(canvas.shape[:2]) / 640))
     if caption:
         band = caption_band_height(canvas.shape[:2])
@@ -49,7 +63,7 @@ def draw_detections(image: np.ndarray, detections: Sequence[Detection],
             contours, _ = cv2.findContours(masks[i].astype(np.uint8), cv2.RETR_EXTERNAL,
                                            cv2.CHAIN_APPROX_NONE)
             cv2.drawContours(canvas, contours, -1, colour, scale, cv2.LINE_AA)
-        x0, y0, x1, y1 = (int(round(v)) for v in det.box)
+        x0, y0, x1, y1 = (int(round(v * up)) for v in det.box)
         cv2.rectangle(canvas, (x0, y0), (x1, y1), colour, scale)
         label = f"{(names or {}).get(det.obj_id, det.obj_id)} {det.score:.2f}"
         cv2.putText(canvas, label, (x0, max(12 * scale, y0 - 3)), cv2.FONT_HERSHEY_SIMPLEX,

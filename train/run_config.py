@@ -50,13 +50,16 @@ class RunSettings:
     is a records folder (``train/``, ``val/``, ``objects.json``, ``banks/``) written by
     ``python -m datagen.pack``. ``distributed``: ``"auto"`` calls
     ``jax.distributed.initialize()`` when the cluster's environment shows several processes;
-    True / False force it."""
+    True / False force it. ``init_from``: a training run (its folder) whose best checkpoint
+    initialises the parameters of a fresh run (fine-tuning, ``python -m train.adapt --from``);
+    the model config must be the same; ignored once the run has its own checkpoint."""
 
     trainer: str = "detector"  # which train/trainer_<name>.py launch.py runs
     seed: int = 0
     total_steps: int = 1000
     batch_size: int = 8
     data_dir: str = ""
+    init_from: str = ""
     distributed: str = "auto"
     log_every: int = 50
     progress_bar: bool = True

@@ -345,6 +345,8 @@ class DetectorTrainer:
         latest = self.checkpointer.latest_step()
         if latest is None:
             self.state = self.compiled.init()
+            if config.init_from:
+                self.state["params"] = self._params_from(config.init_from)
             self.start_step = 0
         else:
             target = abstract_with_shardings(self.compiled.abstract_state,
@@ -352,6 +354,21 @@ class DetectorTrainer:
             self.state = self.checkpointer.restore(latest, target, self.iterator)
             self.start_step = int(latest)
         self._evaluator = None
+
+    def _params_from(self, run: str) -> Any:
+        """The best checkpoint's parameters of another run of the same model (``init_from``)."""
+        source = RunDir(run)
+        if not source.model_file.exists():
+            raise FileNotFoundError(
+                f"config.init_from={run!r} is not a training run (no {source.model_file}); pass "
+                "the --workdir of a detector run")
+        source.check_same_model(self.model_cfg, fix=(
+            "Fine-tuning keeps the model: train with that run's model section "
+            f"({source.model_file})"))
+        step = source.best_step()
+        target = abstract_with_shardings(self.compiled.abstract_state["params"],
+                                         self.compiled.state_shardings["params"])
+        return source.restore_params(step, target)
 
     # -- data ----------------------------------------------------------------------------
 

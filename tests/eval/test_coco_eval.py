@@ -54,7 +54,8 @@ def test_gt_annotation_box_is_amodal_and_inclusive():
 def test_perfect_detections_score_one():
     m1, m2 = _rect(5, 5, 25, 25), _rect(40, 10, 70, 50)
     res = _eval([_det(m1, 0.9), _det(m2, 0.8, obj=2)], [_gt(m1), _gt(m2, obj=2)])
-    one = {"ap": pytest.approx(1.0), "ap50": pytest.approx(1.0), "ap75": pytest.approx(1.0)}
+    one = {"ap": pytest.approx(1.0), "ap50": pytest.approx(1.0), "ap75": pytest.approx(1.0),
+           "f1": pytest.approx(1.0), "f1_threshold": pytest.approx(0.8)}
     assert res == {"bbox": one, "segm": one}
 
 
@@ -97,7 +98,8 @@ def test_false_positive_ranked_first_and_iou_thresholds():
     # The GT box shifted by 7 px: IoU = 23*30 / (2*900 - 23*30) = 0.6216, which passes the IoU
     # thresholds 0.50, 0.55 and 0.60 only: AP = 3/10.
     res = _eval([Detection2D(1, 0, 1, 0.9, (17, 10, 30, 30), None)], [_gt(m)])
-    assert res["bbox"] == {"ap": pytest.approx(0.3), "ap50": pytest.approx(1.0), "ap75": 0.0}
+    assert res["bbox"] == {"ap": pytest.approx(0.3), "ap50": pytest.approx(1.0), "ap75": 0.0,
+                           "f1": pytest.approx(1.0), "f1_threshold": pytest.approx(0.9)}
     assert "segm" not in res
 
 
@@ -110,5 +112,48 @@ def test_duplicates_and_detections_outside_targets():
 
 
 def test_no_detections_score_zero_not_nothing():
-    zero = {"ap": 0.0, "ap50": 0.0, "ap75": 0.0}
+    zero = {"ap": 0.0, "ap50": 0.0, "ap75": 0.0, "f1": 0.0, "f1_threshold": 1.0}
     assert _eval([], [_gt(_rect(5, 5, 25, 25))]) == {"bbox": zero, "segm": zero}
+
+
+def _box_iou(a, b):
+    ax0, ay0, aw, ah = a
+    bx0, by0, bw, bh = b
+    iw = max(0.0, min(ax0 + aw, bx0 + bw) - max(ax0, bx0))
+    ih = max(0.0, min(ay0 + ah, by0 + bh) - max(ay0, by0))
+    return iw * ih / (aw * ah + bw * bh - iw * ih)
+
+
+def test_best_f1_matches_a_brute_force_sweep():
+    """The F1 operating point against a loop over every threshold with greedy matching (each
+    GT taken by the best-scoring unmatched detection of IoU >= 0.5, as COCO does when no two
+    candidates compete for one GT, which this layout guarantees)."""
+    rng = np.random.default_rng(3)
+    gts = [_rect(5 + 25 * i, 8 + 6 * i, 21 + 25 * i, 28 + 6 * i) for i in range(3)]
+    gt_boxes = [tuple(float(v) for v in cv2.boundingRect(g.astype(np.uint8))) for g in gts]
+    dets = []
+    for box in gt_boxes:  # one hit per GT at a random score, plus a near miss
+        dets.append(Detection2D(1, 0, 1, float(rng.uniform(0.2, 0.9)), box, None))
+        x, y, w, h = box
+        dets.append(Detection2D(1, 0, 1, float(rng.uniform(0.2, 0.9)), (x + 0.6 * w, y, w, h),
+                                None))
+    for _ in range(5):  # background false positives
+        dets.append(Detection2D(1, 0, 1, float(rng.uniform(0.0, 1.0)),
+                                (float(rng.uniform(0, 60)), 50.0, 6.0, 6.0), None))
+    res = _eval(dets, [_gt(g) for g in gts])["bbox"]
+    best = (0.0, 1.0)
+    for thr in sorted({d.score for d in dets}):
+        kept = sorted((d for d in dets if d.score >= thr), key=lambda d: -d.score)
+        taken, tp = set(), 0
+        for d in kept:
+            ious = [(_box_iou(d.bbox, g), j) for j, g in enumerate(gt_boxes) if j not in taken]
+            iou, j = max(ious, default=(0.0, -1))
+            if iou >= 0.5:
+                taken.add(j)
+                tp += 1
+        p, r = tp / len(kept), tp / len(gt_boxes)
+        f1 = 2 * p * r / (p + r) if tp else 0.0
+        if f1 > best[0] + 1e-12:
+            best = (f1, thr)
+    assert 0.3 < best[0] < 1.0
+    assert res["f1"] == pytest.approx(best[0]) and res["f1_threshold"] == pytest.approx(best[1])

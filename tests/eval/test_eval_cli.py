@@ -117,7 +117,7 @@ def test_cli_2d(dataset, tmp_path):
     scores = json.loads(out.read_text())
     assert set(scores) == {"bbox", "segm"}
     for t in ("bbox", "segm"):
-        assert set(scores[t]) == {"ap", "ap50", "ap75"}
+        assert set(scores[t]) == {"ap", "ap50", "ap75", "f1", "f1_threshold"}
         assert scores[t]["ap"] == pytest.approx(1.0)
 
 

@@ -160,9 +160,32 @@ def test_no_detections_are_reported_on_console_and_overlay(files, capsys, monkey
     assert "0 detections above threshold 0.2 (best score 0.034)" in capsys.readouterr().out
     image = cv2.imread(str(files / "a.png"))
     overlay = cv2.imread(str(files / "out" / "overlay_0_a.png"))
+    # The 64 x 48 image is shown 10x enlarged (overlays are at least 640 px wide).
+    image = cv2.resize(image, (640, 480), interpolation=cv2.INTER_LINEAR)
+    assert overlay.shape == image.shape
     band = caption_band_height(image.shape[:2])
     assert np.any(overlay[:band] != image[:band])  # the caption
     np.testing.assert_array_equal(overlay[band:], image[band:])
+
+
+def test_small_overlays_are_enlarged_with_their_boxes_and_contours():
+    from infer.detect import Detection
+    from infer.visualize import MIN_OVERLAY_WIDTH, draw_detections
+
+    image = np.zeros((120, 160, 3), np.uint8)
+    mask = np.zeros((120, 160), bool)
+    mask[70:90, 100:130] = True
+    det = Detection(3, np.array([10.0, 20.0, 50.0, 60.0]), 0.9, np.eye(4)[None], np.ones(1),
+                    np.zeros(0))
+    canvas = draw_detections(image, [det], [mask])
+    assert canvas.shape == (480, 640, 3) and MIN_OVERLAY_WIDTH == 640
+    lit = canvas.max(axis=2) > 0
+    # The box's edges at 4x: x 40 and 200, y 80 and 240 (1 px lines).
+    assert lit[150, 40] and lit[150, 200] and lit[80, 120] and lit[240, 120]
+    assert not lit[150, 120]  # inside the box: untouched
+    # The mask's contour at 4x: rows 280-359, columns 400-519.
+    assert lit[320, 400] and lit[320, 519] and not lit[320, 460]
+    assert not lit[320, 380] and not lit[320, 540]
 
 
 def test_mesh_units_error_names_the_units_flag(files, capsys, monkeypatch):

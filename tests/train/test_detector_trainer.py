@@ -28,7 +28,7 @@ def _params_np(trainer):
 
 
 def test_configs_have_the_required_keys_and_valid_models():
-    for name in ("tiny", "small", "paper"):
+    for name in ("tiny", "cpu", "small", "paper"):
         c = detector_configs.get_config(name)
         for key in ("total_steps", "batch_size", "data_dir", "seed"):
             assert key in c, (name, key)
@@ -41,7 +41,7 @@ def test_configs_have_the_required_keys_and_valid_models():
     # B/16 backbone at 512 px (85.0M blocks + 0.6M patch + 0.8M position embedding), two
     # attention pools (7.1M each) and five 768x768 projections/head layers (3M): ~104M.
     assert 102e6 < n < 106e6
-    with pytest.raises(ValueError, match="tiny, small or paper"):
+    with pytest.raises(ValueError, match="tiny, cpu, small or paper"):
         detector_configs.get_config("huge")
 
 
@@ -330,3 +330,32 @@ def test_metrics_on_a_hand_made_case():
     m = eval_detector.compute_metrics(res, symmetries={5: np.eye(4)[None], 9: np.eye(4)[None]},
                                       **kw)
     assert m["eval/tile_diagnostic/orientation_acc"] == pytest.approx(0.5)
+
+
+def test_init_from_starts_a_fresh_run_with_the_source_runs_best_parameters(toy, tmp_path):
+    """``init_from``: step 0 of the new run holds exactly the parameters the source run had at
+    its best checkpoint (scripted here: the last one), the optimizer starts fresh, and a run of
+    another model is refused naming the fix."""
+    source = small_config(toy, **{"total_steps": 2, "checkpoint.every_steps": 2})
+    trainer = td.DetectorTrainer(source, tmp_path / "source", devices=jax.devices()[:1],
+                                 step_cache=STEPS)
+    trainer.run()
+    trained = _params_np(trainer)
+    assert RunDir(tmp_path / "source").best_step() == 2
+    fresh = small_config(toy, init_from=str(tmp_path / "source"), seed=5)
+    tuned = td.DetectorTrainer(fresh, tmp_path / "tuned", devices=jax.devices()[:1],
+                               step_cache=STEPS)
+    assert tuned.start_step == 0 and tuned.step == 0
+    jax.tree.map(np.testing.assert_array_equal, _params_np(tuned), trained)
+    scratch = td.DetectorTrainer(small_config(toy, seed=5), tmp_path / "scratch",
+                                 devices=jax.devices()[:1], step_cache=STEPS)
+    same = jax.tree.map(np.array_equal, _params_np(scratch), trained)
+    assert not all(jax.tree.leaves(same))  # the check above can tell the two apart
+    tuned.close()
+    scratch.close()
+    other = small_config(toy, init_from=str(tmp_path / "source"), **{"model.variant": "tiny/16"})
+    with pytest.raises(ValueError, match="Fine-tuning keeps the model"):
+        td.DetectorTrainer(other, tmp_path / "other", devices=jax.devices()[:1], step_cache=STEPS)
+    with pytest.raises(FileNotFoundError, match="not a training run"):
+        td.DetectorTrainer(small_config(toy, init_from=str(tmp_path / "nothing")),
+                           tmp_path / "none", devices=jax.devices()[:1], step_cache=STEPS)

@@ -124,11 +124,12 @@ class RunDir:
             fields["dtype"] = dtype
         return DetectorConfig(**fields)
 
-    def check_same_model(self, model_cfg: DetectorConfig) -> None:
+    def check_same_model(self, model_cfg: DetectorConfig, fix: str | None = None) -> None:
         """Refuse to resume a run of another model into this workdir, naming both.
 
         Compares ``model_cfg`` with the saved detector.json, ignoring
         :data:`COMPUTE_ONLY_FIELDS`; does nothing when the workdir holds no model config.
+        ``fix`` replaces the advice that ends the message.
         """
         if not self.model_file.exists():
             return
@@ -140,8 +141,9 @@ class RunDir:
             changes = ", ".join(f"{k}={saved.get(k)!r} (config: {new.get(k)!r})" for k in diff)
             raise ValueError(
                 f"this workdir holds a {saved.get('variant')} run whose model differs from the "
-                f"config's {new.get('variant')}: {changes}. Resume it with the run's own config "
-                f"({self.config_file}) or pass a fresh --workdir")
+                f"config's {new.get('variant')}: {changes}. " + (fix or (
+                    f"Resume it with the run's own config ({self.config_file}) or pass a fresh "
+                    "--workdir")))
 
     # -- checkpoints ---------------------------------------------------------------------
 
@@ -203,6 +205,23 @@ class RunDir:
             raise ValueError(f"no checkpoint at step {step!r} in {self.checkpoint_dir}; "
                              f"available: {steps} (or 'best', 'latest')")
         return int(step)
+
+    def restore_params(self, step: int, target: Any) -> Any:
+        """The parameters of checkpoint ``step`` (a step of :meth:`resolve_step`) restored into
+        ``target``, a pytree of ``jax.ShapeDtypeStruct`` with shardings; the optimizer state
+        and the data iterator stay on disk (inference, and a run initialised from another)."""
+        import warnings
+
+        import orbax.checkpoint as ocp
+
+        with ocp.CheckpointManager(self.checkpoint_dir) as manager, warnings.catch_warnings():
+            # Only the parameters are restored, with their shardings given; Orbax still warns
+            # about the other items it skips.
+            warnings.filterwarnings("ignore", message="Sharding info not provided")
+            restored = manager.restore(step, args=ocp.args.Composite(**{
+                STATE_ITEM: ocp.args.PyTreeRestore(item={"params": target},
+                                                   partial_restore=True)}))
+        return restored[STATE_ITEM]["params"]
 
 
 def metric_fn(name: str) -> Callable[[Mapping[str, float]], float]:

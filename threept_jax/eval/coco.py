@@ -30,7 +30,7 @@ from pycocotools.cocoeval import COCOeval
 from threept_jax.data.bop import Detection2D
 from threept_jax.data.bop.results import validate_rle
 
-__all__ = ["BopCOCOeval", "coco_gt_annotation", "evaluate_coco"]
+__all__ = ["BopCOCOeval", "best_f1", "coco_gt_annotation", "evaluate_coco"]
 
 
 class BopCOCOeval(COCOeval):
@@ -132,7 +132,7 @@ def evaluate_coco(
         if detections and not any(field_ok(d) for d in detections):
             continue
         if not sel:
-            out[iou_type] = {"ap": 0.0, "ap50": 0.0, "ap75": 0.0}
+            out[iou_type] = {"ap": 0.0, "ap50": 0.0, "ap75": 0.0, "f1": 0.0, "f1_threshold": 1.0}
             continue
         res = []
         for d in sel:
@@ -164,5 +164,43 @@ def evaluate_coco(
             ev.accumulate()
             ev.summarize()
         stats = [max(0.0, float(v)) for v in ev.stats[:3]]
-        out[iou_type] = {"ap": stats[0], "ap50": stats[1], "ap75": stats[2]}
+        f1, threshold = best_f1(ev)
+        out[iou_type] = {"ap": stats[0], "ap50": stats[1], "ap75": stats[2], "f1": f1,
+                         "f1_threshold": threshold}
     return out
+
+
+def best_f1(ev: COCOeval) -> tuple[float, float]:
+    """(F1, score threshold) of the best operating point at IoU 0.5 of an evaluated COCOeval.
+
+    Detections of every image and category are ranked by score; keeping those scoring at
+    least the threshold gives precision P = TP / kept and recall R = TP / GT, with COCOeval's
+    own matching (IoU >= 0.5, all areas, at most ``maxDets[-1]`` per image and category,
+    ignored GT not counted and detections matched to them dropped) and F1 = 2PR / (P + R).
+    The threshold is the lowest kept score: a deployment keeps detections scoring at least it
+    (``--score-threshold`` is inclusive). (0, 1) when nothing matches.
+    """
+    t = int(np.argmin(np.abs(ev.params.iouThrs - 0.5)))
+    area, max_det = ev.params.areaRng[0], ev.params.maxDets[-1]
+    scores, hits, num_gt = [], [], 0
+    for e in ev.evalImgs:
+        if e is None or list(e["aRng"]) != list(area) or e["maxDet"] != max_det:
+            continue
+        num_gt += int(np.count_nonzero(~np.asarray(e["gtIgnore"], bool)))
+        if len(e["dtIds"]) == 0:
+            continue
+        keep = ~np.asarray(e["dtIgnore"], bool)[t]
+        scores.append(np.asarray(e["dtScores"], np.float64)[keep])
+        hits.append((np.asarray(e["dtMatches"])[t] > 0)[keep])
+    if not scores or num_gt == 0:
+        return 0.0, 1.0
+    scores, hits = np.concatenate(scores), np.concatenate(hits)
+    order = np.argsort(-scores, kind="mergesort")
+    scores, tp = scores[order], np.cumsum(hits[order])
+    precision, recall = tp / np.arange(1, len(tp) + 1), tp / num_gt
+    f1 = np.where(tp > 0, 2 * precision * recall / np.maximum(precision + recall, 1e-12), 0.0)
+    # Equal scores are kept or dropped together: only the last of a run is an operating point.
+    last = np.r_[scores[1:] != scores[:-1], True]
+    f1 = np.where(last, f1, -1.0)
+    i = int(np.argmax(f1))
+    return (float(f1[i]), float(scores[i])) if f1[i] > 0 else (0.0, 1.0)

@@ -1,8 +1,9 @@
 """Frozen model configurations and the ViT size table.
 
 Variants are named as in big_vision's ``vit.py``: ``"<size>/<patch>"`` (``"B/16"``, ``"L/14"``),
-with the size looked up in :data:`VIT_SIZES`. ``"tiny"`` (width 64, depth 2) exists for CPU
-tests and demos; its patch size defaults to 16 and may be given (``"tiny/8"``).
+with the size looked up in :data:`VIT_SIZES`. ``"tiny"`` (width 64, depth 2) exists for tests
+and the pipeline check, ``"mini"`` (width 128, depth 4) for what 2 CPU cores train in an hour;
+their patch size defaults to 16 and may be given (``"tiny/8"``).
 
 Shapes use the letter legend of DESIGN.md: B batch, O objects, P patches, T templates, D width.
 """
@@ -19,6 +20,7 @@ import numpy as np
 #: (Dosovitskiy et al. 2021; Steiner et al. 2021; big_vision ``decode_variant``).
 VIT_SIZES: dict[str, tuple[int, int, int, int]] = {
     "tiny": (64, 2, 2, 256),
+    "mini": (128, 4, 4, 512),
     "Ti": (192, 12, 3, 768),
     "S": (384, 12, 6, 1536),
     "M": (512, 12, 8, 2048),
@@ -28,7 +30,7 @@ VIT_SIZES: dict[str, tuple[int, int, int, int]] = {
 }
 
 #: Patch size used when a variant names no patch (only sensible for the test model).
-_DEFAULT_PATCH = {"tiny": 16}
+_DEFAULT_PATCH = {"tiny": 16, "mini": 16}
 
 #: Tile side the paper's pan-and-scan uses; image sizes default to the nearest patch multiple.
 PAPER_TILE_SIZE = 512

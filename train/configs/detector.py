@@ -1,4 +1,4 @@
-"""3PT-D training configs: ``get_config("tiny" | "small" | "paper")``.
+"""3PT-D training configs: ``get_config("tiny" | "cpu" | "small" | "paper")``.
 
 Used as ``python train/launch.py --config train/configs/detector.py:tiny --workdir DIR
 [--config.key=value ...]``. The configs state only overrides of the defaults of
@@ -11,6 +11,10 @@ shards, ``objects.json`` and ``banks/``, written by ``python -m datagen.pack``).
 * ``tiny``: CPU, tests and the demo: 128 px tiles, the "tiny/16" ViT (width 64, depth 2),
   32 px renders, 16 templates per example, batch 16, 1000 steps (about 4 minutes on 2 cores),
   one-to-many matching (4 positives per object).
+* ``cpu``: the best detector 2 CPU cores train in 30-60 minutes (docs/training.md, "CPU
+  recipes"): the "mini/16" ViT (width 128, depth 4) on 128 px tiles, 32 px renders, 32
+  templates per example, batch 16; ``python -m train.adapt`` sets the steps from its
+  ``--minutes``.
 * ``small``: one GPU in under an hour: S/16 on 512 px tiles, 112 px renders, batch 64,
   64 templates per example, 20k steps.
 * ``paper``: the paper's sizes and data scale (DESIGN.md section 1.1): B/16 on 512 px tiles,
@@ -41,7 +45,7 @@ def _base() -> ml_collections.ConfigDict:
 
 
 def get_config(arg: str = "tiny") -> ml_collections.ConfigDict:
-    """``"tiny"``, ``"small"`` or ``"paper"`` (module docstring)."""
+    """``"tiny"``, ``"cpu"``, ``"small"`` or ``"paper"`` (module docstring)."""
     c = _base()
     if arg == "tiny":
         c.total_steps = 1000
@@ -57,6 +61,16 @@ def get_config(arg: str = "tiny") -> ml_collections.ConfigDict:
         c.eval.batch_size = 8
         c.checkpoint.every_steps = 100
         c.log_every = 20
+    elif arg == "cpu":
+        c.total_steps = 8000
+        c.batch_size = 16
+        c.model.variant = "mini/16"
+        c.loss.matches_per_target = 4
+        c.data.num_train_templates = 32
+        c.optim.warmup_steps = 200
+        c.eval.update(every_steps=1000, num_images=16, num_examples=128, batch_size=16)
+        c.checkpoint.every_steps = 1000
+        c.log_every = 100
     elif arg == "small":
         c.total_steps = 20_000
         c.batch_size = 64
@@ -80,6 +94,6 @@ def get_config(arg: str = "tiny") -> ml_collections.ConfigDict:
         c.mesh.update(data=-1, fsdp=8)
         c.log_every = 100
     else:
-        raise ValueError(f"unknown detector config {arg!r}; use tiny, small or paper "
+        raise ValueError(f"unknown detector config {arg!r}; use tiny, cpu, small or paper "
                          "(train/configs/detector.py:tiny)")
     return c
