@@ -174,6 +174,10 @@ def plan(args, config, workdir: pathlib.Path) -> dict:
     if path.exists():
         saved = json.loads(path.read_text())
         print(f"   {saved['steps']} steps ({saved['step_seconds']:.3f} s each), from {path}")
+        if saved["minutes"] != args.minutes:
+            print(f"   note: this run was planned for {saved['minutes']:g} minutes; --minutes "
+                  f"{args.minutes:g} is ignored so that the resumed run keeps its schedule "
+                  "(use a new --workdir to train with another budget)")
         return saved
     step_s = measure_step_seconds(config)
     steps = max(NUM_EVALS, int(args.minutes * 60 * (1 - EVAL_SHARE) / step_s))
