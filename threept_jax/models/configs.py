@@ -80,6 +80,9 @@ class ViTConfig:
     ``(image_size // patch_size)**2`` rows and is bilinearly resized for any other grid.
     ``num_registers`` learned register tokens (Darcet et al., "Vision Transformers Need
     Registers", 2024) join the sequence and are dropped from the patch outputs.
+    ``layerscale_init``: LayerScale (Touvron et al., CaiT, 2021; used by DINOv2) multiplies each
+    residual branch by a learned per-channel vector initialised to this value; ``None`` (the
+    default, and the detector's setting) builds no LayerScale and leaves the numerics unchanged.
     ``dtype`` is the compute dtype, ``param_dtype`` the storage dtype; layer norms, softmax and
     the position-embedding resize always run in float32. ``attention_impl`` goes to
     ``jax.nn.dot_product_attention``: ``None``/``"xla"`` everywhere, ``"cudnn"`` for cuDNN flash
@@ -93,6 +96,7 @@ class ViTConfig:
     patch_size: int
     image_size: int = 224
     num_registers: int = 0
+    layerscale_init: float | None = None
     posemb: str = "learned"
     layernorm_epsilon: float = 1e-6
     attention_impl: str | None = None
@@ -108,6 +112,11 @@ class ViTConfig:
                 raise ValueError(f"ViTConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.num_registers < 0:
             raise ValueError(f"ViTConfig.num_registers must be >= 0, got {self.num_registers}")
+        if self.layerscale_init is not None and not self.layerscale_init > 0:
+            raise ValueError(
+                f"ViTConfig.layerscale_init must be > 0 or None (no LayerScale), got "
+                f"{self.layerscale_init} (DINOv2 uses 1e-5)"
+            )
         if self.width % self.num_heads:
             raise ValueError(
                 f"ViT width {self.width} is not divisible by num_heads {self.num_heads}"
@@ -258,3 +267,147 @@ class DetectorConfig:
     def num_prior_tokens(self) -> int:
         """Np = num_prior_views * tokens_per_view."""
         return self.num_prior_views * self.tokens_per_view
+
+
+@dataclasses.dataclass(frozen=True)
+class RefinerConfig:
+    """3PT-R, the render-and-compare refiner network (DESIGN.md section 1.3, paper section 3.3).
+
+    Attributes:
+      variant: ViT size and patch, parsed by :func:`decode_variant` (``"tiny/16"``, ``"S/14"``,
+        ``"L/14"``). One encoder embeds the real crops and the renders.
+      crop_size: H = W, the side of the square crops fed to the network; a patch multiple.
+      num_registers: register tokens of the encoder (DINOv2 with registers: 4). At least one:
+        the first register after cross-attention gives the score.
+      layerscale_init: initial LayerScale of every residual branch (encoder and cross-attention
+        blocks); 1e-5 as DINOv2; ``None`` builds no LayerScale.
+      descriptor_dim: C, the dimension of the unit descriptors F and Z.
+      cross_attention_layers: CroCo-style blocks in which each real view's tokens attend to
+        the render tokens of that view under one hypothesis.
+      output_size: h = w, the side of the descriptor and mask maps; ``None`` = 4 * crop_size /
+        patch, the resolution of DPT's finest reassembled level (stride patch / 4: 64 for a
+        224 crop at /14). Any other size is reached by bilinear (pixel-centre) resizing in the
+        last fusion step; the map is the crop resized to h x h, pixel centres aligned.
+      dpt_features: width of DPT's fusion path (Ranftl et al. 2021: 256); the reassembled
+        levels have widths (D/4, D/2, D, D) (DPT-Large's 256, 512, 1024, 1024 at D = 1024).
+      attention_impl: ``None``/``"xla"``, or ``"cudnn"`` (flash attention, GPU, bf16/fp16).
+      remat: rematerialise each encoder, cross-attention and DPT fusion block (and the DPT
+        head) in the backward pass.
+      dtype / param_dtype: compute and storage dtypes of every layer.
+    """
+
+    variant: str = "S/14"
+    crop_size: int = 224
+    num_registers: int = 4
+    layerscale_init: float | None = 1e-5
+    descriptor_dim: int = 128
+    cross_attention_layers: int = 4
+    output_size: int | None = None
+    dpt_features: int = 256
+    attention_impl: str | None = None
+    remat: bool = False
+    dtype: Any = jnp.float32
+    param_dtype: Any = jnp.float32
+
+    def __post_init__(self):
+        arch = decode_variant(self.variant)
+        p = arch["patch_size"]
+        if self.crop_size % p:
+            raise ValueError(
+                f"RefinerConfig.crop_size={self.crop_size} is not a multiple of the patch size "
+                f"{p} of {self.variant!r}; use {nearest_patch_multiple(self.crop_size, p)}"
+            )
+        if self.output_size is None:
+            object.__setattr__(self, "output_size", 4 * (self.crop_size // p))
+        object.__setattr__(self, "dtype", _dtype(self.dtype))
+        object.__setattr__(self, "param_dtype", _dtype(self.param_dtype))
+        for name in ("crop_size", "num_registers", "descriptor_dim", "cross_attention_layers",
+                     "output_size", "dpt_features"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"RefinerConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if arch["width"] % 4:
+            raise ValueError(f"the DPT levels need a ViT width divisible by 4, got {arch['width']}")
+        if self.dpt_features % 2:
+            raise ValueError(f"RefinerConfig.dpt_features must be even, got {self.dpt_features}")
+        _ = self.vit  # builds (and so validates) the encoder config
+
+    @property
+    def vit(self) -> ViTConfig:
+        """The encoder (and cross-attention block) config: native size = the crop size."""
+        return ViTConfig.from_variant(
+            self.variant,
+            image_size=self.crop_size,
+            num_registers=self.num_registers,
+            layerscale_init=self.layerscale_init,
+            attention_impl=self.attention_impl,
+            remat=self.remat,
+            dtype=self.dtype,
+            param_dtype=self.param_dtype,
+        )
+
+    @property
+    def width(self) -> int:
+        return decode_variant(self.variant)["width"]
+
+    @property
+    def depth(self) -> int:
+        return decode_variant(self.variant)["depth"]
+
+    @property
+    def patch_size(self) -> int:
+        return decode_variant(self.variant)["patch_size"]
+
+    @property
+    def grid_size(self) -> int:
+        """Patches per side of a crop."""
+        return self.crop_size // self.patch_size
+
+    @property
+    def dpt_dims(self) -> tuple[int, int, int, int]:
+        """Widths of DPT's four reassembled levels (strides patch/4, patch/2, patch, 2 patch)."""
+        d = self.width
+        return (d // 4, d // 2, d, d)
+
+    @property
+    def encoder_hooks(self) -> tuple[int, int, int, int]:
+        """0-based encoder blocks feeding DPT: the last of each quarter of the depth (DPT-Large:
+        5, 11, 17, 23 of 24; ViT-B: 2, 5, 8, 11). The real crop's fourth level is the
+        cross-attention output instead of the last block."""
+        depth = self.depth
+        return tuple(-(-depth * (i + 1) // 4) - 1 for i in range(4))  # ceil(depth (i+1)/4) - 1
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready fields (dtypes by name); ``RefinerConfig(**d)`` rebuilds the config."""
+        d = dataclasses.asdict(self)
+        d["dtype"], d["param_dtype"] = np.dtype(self.dtype).name, np.dtype(self.param_dtype).name
+        return d
+
+
+#: Named refiner sizes (overrides of :class:`RefinerConfig`), read by
+#: :func:`get_refiner_config`.
+#:
+#: - ``tiny``: tests and the demo; tiny/16 (width 64, depth 2) at 64 px crops, maps 32 x 32.
+#:   LayerScale starts at 0.1, CaiT's value for shallow networks, so that short CPU runs are
+#:   not spent growing 1e-5 gammas.
+#: - ``cpu``: what 2 CPU cores train in an hour; mini/16 (width 128, depth 4) at 64 px crops,
+#:   maps 32 x 32.
+#: - ``small``: one GPU; DINOv2-S/14 shape with 4 registers at 224 px, maps 64 x 64, bf16.
+#: - ``paper``: DINOv2-L/14 with registers at 224 px, maps 64 x 64, bf16 compute, float32
+#:   parameters, rematerialised blocks.
+REFINER_SIZES: dict[str, dict[str, Any]] = {
+    "tiny": dict(variant="tiny/16", crop_size=64, output_size=32, layerscale_init=0.1,
+                 descriptor_dim=32, cross_attention_layers=1, dpt_features=32),
+    "cpu": dict(variant="mini/16", crop_size=64, output_size=32, layerscale_init=0.1,
+                descriptor_dim=64, cross_attention_layers=2, dpt_features=64),
+    "small": dict(variant="S/14", crop_size=224, descriptor_dim=128, cross_attention_layers=4,
+                  dpt_features=128, dtype="bfloat16"),
+    "paper": dict(variant="L/14", crop_size=224, descriptor_dim=128, cross_attention_layers=8,
+                  dpt_features=256, dtype="bfloat16", remat=True),
+}
+
+
+def get_refiner_config(name: str, **overrides: Any) -> RefinerConfig:
+    """``get_refiner_config("small", dtype="float32")``: a named size with field overrides."""
+    if name not in REFINER_SIZES:
+        raise ValueError(f"unknown refiner size {name!r}; known sizes: {', '.join(REFINER_SIZES)}")
+    return RefinerConfig(**{**REFINER_SIZES[name], **overrides})

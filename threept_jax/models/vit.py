@@ -156,8 +156,35 @@ class Attention(nnx.Module):
         return self.out(y)
 
 
+class LayerScale(nnx.Module):
+    """Per-channel residual-branch scale [..., D] * gamma [D] (Touvron et al., CaiT, ICCV 2021).
+
+    DINOv2 puts one after the attention and one after the MLP of every block, with gamma
+    initialised to 1e-5, so a deep network starts close to the identity.
+    """
+
+    def __init__(self, width: int, init: float, *, param_dtype: Any):
+        self.gamma = nnx.Param(jnp.full((width,), init, param_dtype))
+
+    def __call__(self, x: Array) -> Array:
+        return x * self.gamma[...].astype(x.dtype)
+
+
+def _layerscale(cfg: ViTConfig) -> LayerScale | None:
+    if cfg.layerscale_init is None:
+        return nnx.data(None)
+    return LayerScale(cfg.width, cfg.layerscale_init, param_dtype=cfg.param_dtype)
+
+
+def _scaled(scale: LayerScale | None, x: Array) -> Array:
+    return x if scale is None else scale(x)
+
+
 class EncoderBlock(nnx.Module):
-    """Pre-LN transformer block: x + Attn(LN(x)), then x + MLP(LN(x)). [B, N, D] -> [B, N, D]."""
+    """Pre-LN transformer block: x + Attn(LN(x)), then x + MLP(LN(x)). [B, N, D] -> [B, N, D].
+
+    With ``cfg.layerscale_init`` each branch is multiplied by a :class:`LayerScale` first.
+    """
 
     def __init__(self, cfg: ViTConfig, *, rngs: nnx.Rngs):
         kw = dict(dtype=cfg.dtype, param_dtype=cfg.param_dtype, rngs=rngs)
@@ -165,10 +192,41 @@ class EncoderBlock(nnx.Module):
         self.attn = Attention(cfg.width, cfg.num_heads, implementation=cfg.attention_impl, **kw)
         self.norm2 = LayerNorm(cfg.width, epsilon=cfg.layernorm_epsilon, **kw)
         self.mlp = Mlp(cfg.width, cfg.mlp_dim, **kw)
+        self.ls1 = _layerscale(cfg)
+        self.ls2 = _layerscale(cfg)
 
     def __call__(self, x: Array, mask: Array | None = None) -> Array:
-        x = x + self.attn(self.norm1(x), mask=mask)
-        return x + self.mlp(self.norm2(x))
+        x = x + _scaled(self.ls1, self.attn(self.norm1(x), mask=mask))
+        return x + _scaled(self.ls2, self.mlp(self.norm2(x)))
+
+
+class CrossAttentionBlock(nnx.Module):
+    """CroCo decoder block (Weinzaepfel et al., NeurIPS 2022), pre-LN, with optional LayerScale.
+
+    ``(x [B, N, D], context [B, S, D]) -> [B, N, D]``: x + SelfAttn(LN(x)), then
+    x + CrossAttn(LN(x), LN(context)) (queries from x, keys and values from the context), then
+    x + MLP(LN(x)). The context is not updated. Sizes, dtypes and LayerScale come from ``cfg``.
+    """
+
+    def __init__(self, cfg: ViTConfig, *, rngs: nnx.Rngs):
+        kw = dict(dtype=cfg.dtype, param_dtype=cfg.param_dtype, rngs=rngs)
+        eps = cfg.layernorm_epsilon
+        self.norm1 = LayerNorm(cfg.width, epsilon=eps, **kw)
+        self.attn = Attention(cfg.width, cfg.num_heads, implementation=cfg.attention_impl, **kw)
+        self.norm2 = LayerNorm(cfg.width, epsilon=eps, **kw)
+        self.norm_context = LayerNorm(cfg.width, epsilon=eps, **kw)
+        self.cross_attn = Attention(cfg.width, cfg.num_heads, implementation=cfg.attention_impl,
+                                    **kw)
+        self.norm3 = LayerNorm(cfg.width, epsilon=eps, **kw)
+        self.mlp = Mlp(cfg.width, cfg.mlp_dim, **kw)
+        self.ls1 = _layerscale(cfg)
+        self.ls2 = _layerscale(cfg)
+        self.ls3 = _layerscale(cfg)
+
+    def __call__(self, x: Array, context: Array) -> Array:
+        x = x + _scaled(self.ls1, self.attn(self.norm1(x)))
+        x = x + _scaled(self.ls2, self.cross_attn(self.norm2(x), self.norm_context(context)))
+        return x + _scaled(self.ls3, self.mlp(self.norm3(x)))
 
 
 def _apply_block(block: EncoderBlock, x: Array, mask: Array | None) -> Array:
@@ -178,14 +236,30 @@ def _apply_block(block: EncoderBlock, x: Array, mask: Array | None) -> Array:
 _apply_block_remat = nnx.remat(_apply_block)
 
 
+def _apply_cross(block: CrossAttentionBlock, x: Array, context: Array) -> Array:
+    return block(x, context)
+
+
+_apply_cross_remat = nnx.remat(_apply_cross)
+
+
+def apply_cross_block(block: CrossAttentionBlock, x: Array, context: Array, *,
+                      remat: bool = False) -> Array:
+    """``block(x, context)``, rematerialised in the backward pass when ``remat``."""
+    return (_apply_cross_remat if remat else _apply_cross)(block, x, context)
+
+
 class ViT(nnx.Module):
     """ViT encoder with optional extra (prior) tokens and register tokens.
 
-    ``__call__(images [B, H, W, 3], extra_tokens [B, E, D] | None, extra_mask [B, E] | None)``
-    returns ``{"patch_tokens": [B, P, D], "extra_tokens": [B, E, D], "register_tokens":
-    [B, R, D]}`` (the last two only when present), all after the final LayerNorm, with
-    P = (H / patch) * (W / patch) in row-major order. H and W must be multiples of the patch
-    size but need not equal the native ``image_size``: the position embedding follows the grid.
+    ``__call__(images [B, H, W, 3], extra_tokens [B, E, D] | None, extra_mask [B, E] | None,
+    layers=())`` returns ``{"patch_tokens": [B, P, D], "extra_tokens": [B, E, D],
+    "register_tokens": [B, R, D], "layers": (L x [B, P, D])}`` (the last three only when
+    present), all after the final LayerNorm, with P = (H / patch) * (W / patch) in row-major
+    order. ``layers`` names blocks (0-based) whose patch-token outputs are returned as well, in
+    the manner of DINOv2's ``get_intermediate_layers(norm=True)``, for dense heads such as DPT.
+    H and W must be multiples of the patch size but need not equal the native ``image_size``:
+    the position embedding follows the grid.
     Extra tokens get no position embedding here; the caller adds whatever identifies them.
     """
 
@@ -239,8 +313,12 @@ class ViT(nnx.Module):
         return x + self.position_embedding(grid)[None]
 
     def __call__(self, images: Array, extra_tokens: Array | None = None,
-                 extra_mask: Array | None = None) -> dict[str, Array]:
+                 extra_mask: Array | None = None, layers: tuple[int, ...] = ()
+                 ) -> dict[str, Array]:
         cfg = self.cfg
+        layers = tuple(int(i) for i in layers)
+        if any(not 0 <= i < cfg.depth for i in layers):
+            raise ValueError(f"layers {layers} must be block indices in [0, {cfg.depth})")
         x = self.embed_patches(images)
         b, num_patches = x.shape[:2]
         parts, masks = [x], [jnp.ones((b, num_patches), bool)]
@@ -263,10 +341,15 @@ class ViT(nnx.Module):
         x = jnp.concatenate(parts, axis=1)
         mask = None if extra_mask is None else jnp.concatenate(masks, axis=1)
         apply = _apply_block_remat if cfg.remat else _apply_block
-        for block in self.blocks:
+        hooked = {}
+        for i, block in enumerate(self.blocks):
             x = apply(block, x, mask)
+            if i in layers:
+                hooked[i] = x[:, :num_patches]
         x = self.norm(x)
         out = {"patch_tokens": x[:, :num_patches]}
+        if layers:
+            out["layers"] = tuple(self.norm(hooked[i]) for i in layers)
         if extra_tokens is not None:
             out["extra_tokens"] = x[:, num_patches:num_patches + num_extra]
         if self.registers is not None:
