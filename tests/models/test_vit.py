@@ -7,7 +7,14 @@ import pytest
 from flax import nnx
 
 from threept_jax.models.configs import DetectorConfig, ViTConfig, decode_variant
-from threept_jax.models.vit import Attention, ViT, count_params, posemb_sincos_2d, resize_posemb
+from threept_jax.models.vit import (
+    Attention,
+    CrossAttentionBlock,
+    ViT,
+    count_params,
+    posemb_sincos_2d,
+    resize_posemb,
+)
 
 
 def vit_param_count(width, depth, mlp, patch, num_patches, registers=0):
@@ -160,3 +167,68 @@ def test_bfloat16_matches_float32_and_remat_checkpoints_blocks(tiny_vit):
         return sum(e.primitive.name in ("remat2", "checkpoint") for e in eqns)
 
     assert num_checkpoints(rem) == 2 and num_checkpoints(tiny_vit) == 0
+
+
+def test_layerscale_off_builds_nothing_and_on_scales_each_branch(tiny_vit):
+    x = jax.random.uniform(jax.random.key(0), (2, 32, 32, 3))
+    kw = dict(image_size=64, num_registers=1)
+    # Off (the default, the detector's setting): no gamma parameters, the hand count holds.
+    assert ViTConfig.from_variant("tiny").layerscale_init is None
+    assert DetectorConfig(variant="tiny").vit.layerscale_init is None
+    paths = [p for p, _ in nnx.iter_graph(tiny_vit)]
+    assert not any("ls1" in map(str, p) for p in paths)
+    assert count_params(tiny_vit) == vit_param_count(64, 2, 256, 16, 16, registers=1)
+    # On: two D-vectors per block; LayerScale draws no random numbers, so the same seed gives
+    # the same other parameters.
+    one = ViT(ViTConfig.from_variant("tiny", layerscale_init=1.0, **kw), rngs=nnx.Rngs(0))
+    assert count_params(one) == count_params(tiny_vit) + 2 * 2 * 64
+    np.testing.assert_array_equal(one.blocks[1].ls2.gamma[...], np.ones(64, np.float32))
+    # gamma = 1 multiplies exactly: outputs equal the LayerScale-free ViT bit for bit.
+    np.testing.assert_array_equal(_forward(one, x)["patch_tokens"],
+                                  _forward(tiny_vit, x)["patch_tokens"])
+    # gamma = 0 makes every block the identity: the output is the final LayerNorm of the
+    # embedded patches (an independent composition of the model's first and last layers).
+    zero = nnx.clone(one)
+    for block in zero.blocks:
+        for ls in (block.ls1, block.ls2):
+            ls.gamma[...] = jnp.zeros(64)
+    expected = zero.norm(zero.embed_patches(x))
+    np.testing.assert_allclose(_forward(zero, x)["patch_tokens"], expected, atol=1e-6)
+    with pytest.raises(ValueError, match="layerscale_init must be > 0"):
+        ViTConfig.from_variant("tiny", layerscale_init=0.0)
+
+
+def test_intermediate_layers_are_normed_block_outputs(tiny_vit):
+    x = jax.random.uniform(jax.random.key(0), (2, 32, 32, 3))
+    out = _forward_layers(tiny_vit, x)
+    assert len(out["layers"]) == 2
+    # The last block's output after the final norm is the patch-token output itself.
+    np.testing.assert_array_equal(out["layers"][1], out["patch_tokens"])
+    # Block 0's output, composed by hand from the embedded patches and the register.
+    tokens = jnp.concatenate([tiny_vit.embed_patches(x),
+                              jnp.broadcast_to(tiny_vit.registers[...][None], (2, 1, 64))], 1)
+    expected = tiny_vit.norm(tiny_vit.blocks[0](tokens))[:, :4]
+    np.testing.assert_allclose(out["layers"][0], expected, atol=1e-5)
+    with pytest.raises(ValueError, match=r"block indices in \[0, 2\)"):
+        nnx.eval_shape(lambda m, v: m(v, layers=(2,)), tiny_vit, x)
+
+
+@nnx.jit
+def _forward_layers(model, x):
+    return model(x, layers=(0, 1))
+
+
+def test_cross_attention_block_matches_hand_composition():
+    cfg = ViTConfig.from_variant("tiny", image_size=32, layerscale_init=0.5)
+    block = CrossAttentionBlock(cfg, rngs=nnx.Rngs(3))
+    rng = np.random.default_rng(0)
+    x = jnp.asarray(rng.normal(size=(2, 5, 64)), jnp.float32)
+    ctx = jnp.asarray(rng.normal(size=(2, 7, 64)), jnp.float32)
+    got = block(x, ctx)
+    y = x + 0.5 * block.attn(block.norm1(x))
+    y = y + 0.5 * block.cross_attn(block.norm2(y), block.norm_context(ctx))
+    y = y + 0.5 * block.mlp(block.norm3(y))
+    np.testing.assert_allclose(got, y, atol=1e-5)
+    # Queries see the context: changing a context token changes every query's output.
+    moved = ctx.at[:, 0].set(jnp.asarray(rng.normal(size=(2, 64)), jnp.float32))
+    assert np.abs(np.asarray(block(x, moved) - got)).max(axis=-1).min() > 1e-4
