@@ -175,3 +175,15 @@ def test_memory_plan_scales_with_devices_and_remat(model):
     remat = memory_plan(RefinerConfig(**{**CFG.to_dict(), "remat": True}), instances=8)
     assert remat["activations_saved"] < one["activations_saved"]
     assert one["parameters"] == 4 * count_params(model)
+
+
+def test_bfloat16_compute_returns_float32_and_odd_grids_work():
+    # Shapes only (nnx.eval_shape): bf16 compute, and a 3 x 3 patch grid (DPT's coarsest level
+    # is 2 x 2 and is resized back to 3 x 3), with a map size that is not 4 x the grid.
+    cfg = get_refiner_config("tiny", crop_size=48, output_size=20, dtype="bfloat16")
+    real = jax.ShapeDtypeStruct((2, 1, 48, 48, 3), jnp.uint8)
+    renders = jax.ShapeDtypeStruct((2, 4, 1, 48, 48, 3), jnp.float32)
+    out = nnx.eval_shape(lambda r, q: Refiner(cfg, rngs=nnx.Rngs(0))(r, q), real, renders)
+    assert out["real_desc"].shape == (2, 4, 1, 20, 20, 32)
+    assert out["mask_logits"].shape == (2, 4, 1, 20, 20)
+    assert all(v.dtype == jnp.float32 for v in out.values())

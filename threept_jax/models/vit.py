@@ -5,7 +5,9 @@ come from a table parsed from strings such as ``"B/16"`` (:mod:`threept_jax.mode
 optional register tokens (Darcet et al. 2024), learned position embeddings resized bilinearly
 to any patch grid or fixed 2-D sin-cos ones, and attention that accepts extra tokens: 3PT-D
 concatenates the object's prior tokens to the image patch tokens (early fusion, DESIGN.md
-section 1.1) and every token attends to every other.
+section 1.1) and every token attends to every other. Optional LayerScale (DINOv2; off by
+default, so the detector's parameters and numerics are those of the plain block), intermediate
+block outputs for dense heads, and a CroCo cross-attention block for the refiner (3PT-R).
 
 Every layer takes ``dtype`` (compute) and ``param_dtype`` (storage). Layer norms, the softmax
 of attention and position-embedding resizing run in float32; the residual stream is kept in
