@@ -11,6 +11,7 @@ from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
 from threept_jax.eval.pose_error import prepare_model
+from threept_jax.models.detector import DEFAULT_SCORE_MODE
 from train.eval_detector import full_image_metrics, held_out_image
 
 H, W = 64, 80
@@ -60,11 +61,11 @@ def test_perfect_detections_score_one_and_none_score_zero():
     assert m["eval/bop6d_ap"] == pytest.approx(1.0)
     assert m["eval/num_gt"] == 2 and m["eval/num_images"] == 1
     none = _outputs(np.zeros((0, 4)), [], [], np.zeros((0, 4, 4)))
-    m = full_image_metrics([{"product": none}], [im], OBJ_IDS, _models())
+    m = full_image_metrics([{DEFAULT_SCORE_MODE: none}], [im], OBJ_IDS, _models())
     assert m["eval/ap50"] == 0.0 and m["eval/ap"] == 0.0 and m["eval/bop6d_ap"] == 0.0
     # Boxes right, every object swapped: box AP 0 (categories are object ids).
     swapped = _outputs(rec["bbox_obj"][:2], [0.9, 0.8], [1, 0])
-    assert full_image_metrics([{"product": swapped}], [im], OBJ_IDS)["eval/ap50"] == 0.0
+    assert full_image_metrics([{DEFAULT_SCORE_MODE: swapped}], [im], OBJ_IDS)["eval/ap50"] == 0.0
 
 
 def test_ap_equals_stock_pycocotools_on_the_same_detections():
@@ -79,7 +80,7 @@ def test_ap_equals_stock_pycocotools_on_the_same_detections():
         boxes = np.concatenate([gt, fp])
         objs = np.concatenate([np.repeat([0, 1, 0], 2), rng.integers(0, 2, 3)])
         objs[rng.random(9) < 0.2] ^= 1
-        outputs.append({"product": _outputs(boxes, rng.random(9), objs)})
+        outputs.append({DEFAULT_SCORE_MODE: _outputs(boxes, rng.random(9), objs)})
     m = full_image_metrics(outputs, images, OBJ_IDS)
 
     gt, dt = [], []
@@ -89,7 +90,7 @@ def test_ap_equals_stock_pycocotools_on_the_same_detections():
             gt.append({"id": len(gt) + 1, "image_id": n + 1, "category_id": int(rec["obj_id"][i]),
                        "bbox": [x0, y0, x1 - x0, y1 - y0], "iscrowd": 0,
                        "area": float((rec["instances"] == i + 1).sum())})
-        o = out["product"]
+        o = out[DEFAULT_SCORE_MODE]
         for b, s, j in zip(o["boxes"], o["scores"], o["object"], strict=True):
             dt.append({"image_id": n + 1, "category_id": OBJ_IDS[j], "score": float(s),
                        "bbox": [float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])]})
