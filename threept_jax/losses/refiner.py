@@ -27,8 +27,9 @@ e^-2 = 0.14 of the target at tau = 0.05 but e^-1 = 0.37 at 0.1, so the smaller t
 loss resolve single pixels, which is what PnP needs. Between MoCo's 0.07 and the ~0.01 that
 CLIP's learned temperature settles at. Fixed rather than learned because inference matches by
 reciprocal nearest neighbour on cosine, which tau does not change: tau only shapes training,
-and a learned one drifts towards sharp, noisy gradients early in training. A caller that does
-want it learned passes a traced scalar as ``temperature``; the loss is differentiable in it.
+so a learned one adds a parameter (and, as CLIP's clipping at 1/100 shows, a bound to guard)
+without changing what inference reads. A caller that wants it learned passes a traced scalar
+as ``temperature``; the loss is differentiable in it (tested).
 """
 
 from __future__ import annotations
