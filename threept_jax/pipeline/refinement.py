@@ -17,10 +17,10 @@ Frames:
   ``threept_jax.geometry.camera``); the h x w descriptor map has ``K_map = crop_intrinsics(crop_K,
   (0, 0, W, H), (h, w))``, so map pixel (i, j) (row, column) is the crop point
   ((j + 0.5) W / w - 0.5, (i + 0.5) H / h - 0.5), the network contract's rule.
-* The 3D point of a match is the render's object coordinate at a map pixel centre (mm, object
-  frame); its 2D point is the matched real map pixel (plus its sub-pixel offset) converted to
-  **crop pixels**, and :func:`~threept_jax.geometry.pnp.solve_pnp` runs with ``crop_K``. Its
-  pixel scales (``huber_px``, ``tukey_px``) are therefore crop pixels.
+* The 2D point of a match is the real map pixel's centre converted to **crop pixels**, and
+  :func:`~threept_jax.geometry.pnp.solve_pnp` runs with ``crop_K`` (its ``huber_px`` and
+  ``tukey_px`` are crop pixels). The 3D point is in the object frame (mm): the render's object
+  coordinate at the matched render pixel, refined to sub-pixel precision (below).
 
 Match rule (:func:`reciprocal_matches`): cosine similarities S = Z F^T between every render
 pixel and every real pixel of one (hypothesis, view) pair (the network's descriptors are unit
@@ -28,14 +28,18 @@ vectors; they are normalised again here). A render pixel r and a real pixel q ma
 r's most similar real pixel and r is q's most similar *rendered object* pixel (mutual nearest
 neighbours, render background excluded), and r is an edge pixel of the render (silhouette,
 depth discontinuity or crease, ``render.raster.edges_from_geometry``). The N matches of highest
-similarity are kept; fewer are padded with weight 0. Each kept match's real pixel is then
-refined to sub-pixel precision by a quadratic fit of the similarities to r over q's 3 x 3
-neighbourhood (``subpixel=True``): discrete nearest neighbours stop improving once the
-hypothesis is within half a map pixel of the truth, since every match then points back to its
-own pixel (a fixed point), and half a map pixel is several mm of depth. The fit is used only
-where all nine neighbours lie inside the map and inside the network's predicted mask (a
-background neighbour would drag the peak) and the fitted quadric has a maximum within one pixel;
-elsewhere the pixel centre is kept.
+similarity are kept; fewer are padded with weight 0.
+
+Sub-pixel 3D points (``subpixel=True``): with matches between pixel centres only, a hypothesis
+within half a map pixel of the truth is a fixed point (every render pixel matches the real pixel
+at the same place, and PnP returns the hypothesis), which leaves several mm of depth error. So
+the 3D point seen by the real pixel q is estimated from the similarities of F_q to the render
+pixels around r, whose object coordinates are known: a fit of s = alpha - b |X - X*|^2 over r's
+3 x 3 neighbourhood gives X*. It assumes the similarity is a peaked, locally isotropic function
+of 3D distance near its maximum (nearly so for the test oracle, an approximation for a
+trained network). X* is kept within 1.5 pixel sizes of X_r. Neighbours off the object, across
+a depth step or with unrelated descriptors (similarity under half of r's) are left out; too few
+neighbours keep X_r. Working in 3D, creases and slanted faces need no special case.
 """
 
 from __future__ import annotations
