@@ -1,0 +1,393 @@
+"""The refinement step of 3PT-R, shared by training and inference (DESIGN.md section 1, stage 3).
+
+One render-and-compare iteration for one object instance seen in V calibrated views, with K pose
+hypotheses (issue 14, section 3)::
+
+    hypotheses [K, 4, 4] (T_world_obj) --render--> colour [K, V, H, W, 3] (crop size, network)
+                                                   xyz, edge, mask [K, V, h, w] (map size)
+    network(real crops, colour renders) --> descriptors F (real), Z (render), mask logits, scores
+    reciprocal matching of Z (render edge pixels) against F --> N 2D-3D matches per (k, v)
+    multi-view PnP per hypothesis, initialised at it --> refined hypotheses
+
+Frames:
+
+* ``hypotheses`` are object poses in the world (mm); view v sees the object at
+  ``T_cam_obj = T_cam_world[v] @ T_world_obj``.
+* ``crop_K`` [V, 3, 3] are the intrinsics of the H x W crops (pixel-centre convention,
+  ``threept_jax.geometry.camera``); the h x w descriptor map has ``K_map = crop_intrinsics(crop_K,
+  (0, 0, W, H), (h, w))``, so map pixel (i, j) (row, column) is the crop point
+  ((j + 0.5) W / w - 0.5, (i + 0.5) H / h - 0.5), the network contract's rule.
+* The 2D point of a match is the real map pixel's centre converted to **crop pixels**, and
+  :func:`~threept_jax.geometry.pnp.solve_pnp` runs with ``crop_K`` (its ``huber_px`` and
+  ``tukey_px`` are crop pixels). The 3D point is in the object frame (mm): the render's object
+  coordinate at the matched render pixel, refined to sub-pixel precision (below).
+
+Match rule (:func:`reciprocal_matches`): cosine similarities S = Z F^T between every render
+pixel and every real pixel of one (hypothesis, view) pair (the network's descriptors are unit
+vectors; they are normalised again here). A render pixel r and a real pixel q match when q is
+r's most similar real pixel and r is q's most similar *rendered object* pixel (mutual nearest
+neighbours, render background excluded), and r is an edge pixel of the render (silhouette,
+depth discontinuity or crease, ``render.raster.edges_from_geometry``). The N matches of highest
+similarity are kept; fewer are padded with weight 0.
+
+Sub-pixel 3D points (``subpixel=True``): with matches between pixel centres only, a hypothesis
+within half a map pixel of the truth is a fixed point (every render pixel matches the real pixel
+at the same place, and PnP returns the hypothesis), which leaves several mm of depth error. So
+the 3D point seen by the real pixel q is estimated from the similarities of F_q to the render
+pixels around r, whose object coordinates are known: a fit of s = alpha - b |X - X*|^2 over r's
+3 x 3 neighbourhood gives X*. It assumes the similarity is a peaked, locally isotropic function
+of 3D distance near its maximum (nearly so for the test oracle, an approximation for a
+trained network). X* is kept within 1.5 pixel sizes of X_r. Neighbours off the object, across
+a depth step or with unrelated descriptors (similarity under half of r's) are left out; too few
+neighbours keep X_r. Working in 3D, creases and slanted faces need no special case.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from threept_jax.geometry.camera import crop_intrinsics, transform
+from threept_jax.geometry.pnp import solve_pnp
+from threept_jax.render.mesh import RasterMesh
+from threept_jax.render.raster import render
+
+Array = jax.Array
+Network = Callable[[Array, Array], dict]
+
+
+class Renders(NamedTuple):
+    """Renders of K hypotheses into V crops (:func:`render_hypotheses`).
+
+    rgb: [K, V, H, W, 3] float32 in [0, 1], shaded colour at the crop size (network input).
+    xyz: [K, V, h, w, 3] object coordinates (mm) at the map's pixel centres, 0 on background.
+    mask: [K, V, h, w] bool, object pixels of the map.
+    edge: [K, V, h, w] bool, edge pixels of the map (silhouette, depth step, crease).
+    K_map: [V, 3, 3] intrinsics of the h x w map.
+    pixel_mm: [K, V] size of a map pixel at the object: depth of its bounding-sphere centre
+      over the map's focal length (mm).
+    """
+
+    rgb: Array
+    xyz: Array
+    mask: Array
+    edge: Array
+    K_map: Array
+    pixel_mm: Array
+
+
+class Matches(NamedTuple):
+    """N 2D-3D matches per (hypothesis, view) pair, padded with weight 0.
+
+    points_3d: [K, V, N, 3] object coordinates (mm) of the render pixels.
+    points_2d: [K, V, N, 2] matched real pixels in the crop frame (pixels of ``crop_K``).
+    weights: [K, V, N] 1 for a match, 0 for padding.
+    similarity: [K, V, N] cosine similarity of the match (-inf for padding).
+    render_pixel: [K, V, N] flat index i * w + j of the render map pixel.
+    real_pixel: [K, V, N] flat index of the matched real map pixel (before sub-pixel refinement).
+    """
+
+    points_3d: Array
+    points_2d: Array
+    weights: Array
+    similarity: Array
+    render_pixel: Array
+    real_pixel: Array
+
+
+class RefineResult(NamedTuple):
+    """Output of :func:`refine_step`.
+
+    hypotheses: [K, 4, 4] refined T_world_obj (the input pose where PnP did not converge).
+    scores: [K] score logits of the input hypotheses (the network's ``scores``).
+    mask_logits: [K, V, h, w] visible-mask logits of the real crops.
+    view_scores: [K, V] per-view score logits.
+    matches: the :class:`Matches` fed to PnP.
+    pnp: dict of [K] arrays, ``solve_pnp``'s info (``rms_px`` in crop pixels, ``num_inliers``,
+      ``converged``, ...).
+    """
+
+    hypotheses: Array
+    scores: Array
+    mask_logits: Array
+    view_scores: Array
+    matches: Matches
+    pnp: dict
+
+
+def map_intrinsics(crop_K: Array, crop_size: int, output_size: int) -> Array:
+    """K [..., 3, 3] of the output_size^2 map of a crop_size^2 crop (pixel-centre rule)."""
+    box = jnp.asarray([0.0, 0.0, crop_size, crop_size], jnp.float32)
+    return crop_intrinsics(jnp.asarray(crop_K, jnp.float32), box, (output_size, output_size))
+
+
+def crop_boxes(mesh, T_world_obj: Array, T_cam_world: Array, K: Array, *,
+               margin: float = 1.2) -> Array:
+    """Square crop boxes [..., V, 4] (pixel-edge xyxy) around an object's projected bounding sphere.
+
+    Args:
+      mesh: anything with the bounding sphere ``center`` [3] and ``radius`` (mm, object frame):
+        a :class:`~threept_jax.render.mesh.Mesh` or :class:`RasterMesh`.
+      T_world_obj: [..., 4, 4] the pose around which to crop (e.g. the best hypothesis).
+      T_cam_world: [V, 4, 4] extrinsics; K: [V, 3, 3] full-image intrinsics.
+      margin: half-side of the box over the sphere's projected radius.
+
+    The box is centred on the projection of the sphere's centre, with half-side
+    ``margin * max(fx, fy) * radius / z`` (z the centre's depth), so the crop's scale follows
+    the object's distance and not its rotation. At ``margin >= 1`` the whole object fits for
+    centres near the optical axis (the exact projection of a sphere is slightly larger off-axis
+    and closer than ~3 radii). Feed the boxes to ``crop_and_resize(image, box, (H, W), K)``,
+    which also returns ``crop_K``. The step's caller recomputes them at every iteration.
+    """
+    T_world_obj = jnp.asarray(T_world_obj, jnp.float32)
+    T_cam_world = jnp.asarray(T_cam_world, jnp.float32)
+    K = jnp.asarray(K, jnp.float32)
+    center = jnp.asarray(mesh.center, jnp.float32)
+    radius = jnp.asarray(mesh.radius, jnp.float32)
+    c_world = transform(T_world_obj, center[None])[..., 0, :]  # [..., 3]
+    c_cam = jnp.einsum("vij,...j->...vi", T_cam_world[:, :3, :3], c_world) + T_cam_world[:, :3, 3]
+    z = jnp.maximum(c_cam[..., 2], 1e-6)
+    u = (K[..., 0, 0] * c_cam[..., 0] + K[..., 0, 1] * c_cam[..., 1]) / z + K[..., 0, 2]
+    v = K[..., 1, 1] * c_cam[..., 1] / z + K[..., 1, 2]
+    half = margin * jnp.maximum(K[..., 0, 0], K[..., 1, 1]) * radius / z
+    # Pixel centre (u, v) is at pixel-edge coordinate (u + 0.5, v + 0.5).
+    return jnp.stack([u + 0.5 - half, v + 0.5 - half, u + 0.5 + half, v + 0.5 + half], -1)
+
+
+def render_hypotheses(mesh: RasterMesh, crop_K: Array, T_cam_world: Array, hypotheses: Array,
+                      *, crop_size: int, output_size: int, ambient: float = 0.3) -> Renders:
+    """Render K hypotheses [K, 4, 4] into V crops: colour at crop_size, geometry at output_size.
+
+    crop_K [V, 3, 3] and T_cam_world [V, 4, 4] as in :func:`refine_step`. The map's xyz, mask
+    and edge are rendered directly at the map resolution with ``K_map``, so map pixel centres
+    are exact (no resampling of object coordinates across silhouettes).
+    """
+    crop_K = jnp.asarray(crop_K, jnp.float32)
+    T_cam_obj = jnp.einsum("vij,kjl->kvil", jnp.asarray(T_cam_world, jnp.float32),
+                           jnp.asarray(hypotheses, jnp.float32))  # [K, V, 4, 4]
+    Kb = jnp.broadcast_to(crop_K, T_cam_obj.shape[:2] + (3, 3))
+    K_map = map_intrinsics(crop_K, crop_size, output_size)
+    rgb = render(mesh, T_cam_obj, Kb, (crop_size, crop_size), ("rgb",), ambient=ambient)["rgb"]
+    geo = render(mesh, T_cam_obj, jnp.broadcast_to(K_map, Kb.shape), (output_size, output_size),
+                 ("xyz", "mask", "edge"))
+    z = jnp.einsum("kvj,j->kv", T_cam_obj[:, :, 2, :3], mesh.center) + T_cam_obj[:, :, 2, 3]
+    pixel_mm = jnp.maximum(z, 1e-3) / jnp.sqrt(K_map[:, 0, 0] * K_map[:, 1, 1])
+    return Renders(rgb=rgb, xyz=geo["xyz"], mask=geo["mask"], edge=geo["edge"], K_map=K_map,
+                   pixel_mm=pixel_mm)
+
+
+def _mutual_nn(Z: Array, F: Array, render_mask: Array, block: int):
+    """Nearest neighbours both ways between Z [P, C] (render) and F [P, C] (real).
+
+    Returns fwd [P] (best real pixel of each render pixel), fwd_sim [P] and bwd [P] (best
+    rendered-object pixel of each real pixel). The P x P similarities are formed ``block``
+    render rows at a time, so memory is block x P, not P^2.
+    """
+    P = Z.shape[0]
+    nb = -(-P // block)
+    pad = nb * block - P
+    Zp = jnp.pad(Z, ((0, pad), (0, 0)))
+    mp = jnp.pad(render_mask, (0, pad))
+
+    def body(carry, b):
+        best_val, best_idx = carry
+        zb = jax.lax.dynamic_slice_in_dim(Zp, b * block, block)
+        mb = jax.lax.dynamic_slice_in_dim(mp, b * block, block)
+        S = zb @ F.T  # [block, P]
+        f_idx = jnp.argmax(S, axis=1)
+        f_val = jnp.max(S, axis=1)
+        Sm = jnp.where(mb[:, None], S, -jnp.inf)
+        col_val = jnp.max(Sm, axis=0)
+        col_idx = jnp.argmax(Sm, axis=0) + b * block
+        take = col_val > best_val  # strict: ties keep the lower render index
+        carry = (jnp.where(take, col_val, best_val), jnp.where(take, col_idx, best_idx))
+        return carry, (f_idx, f_val)
+
+    init = (jnp.full((P,), -jnp.inf, F.dtype), jnp.zeros((P,), jnp.int32))
+    (_, bwd), (fwd, fwd_sim) = jax.lax.scan(body, init, jnp.arange(nb))
+    return fwd.reshape(-1)[:P].astype(jnp.int32), fwd_sim.reshape(-1)[:P], bwd
+
+
+def _subpixel_points(Z: Array, f: Array, r: Array, xyz: Array, rmask: Array,
+                     hw: tuple[int, int], pixel_mm: Array):
+    """Sub-pixel 3D points [N, 3] seen by real pixels with descriptors f [N, C].
+
+    Z [h*w, C] render descriptors, r [N] matched render pixels, xyz [h*w, 3] render object
+    coordinates, rmask [h*w] render object pixels, pixel_mm [] the size of a map pixel at the
+    object (mm). Fits s = alpha - b |Y - delta|^2 to the similarities s of f to the render
+    pixels of r's 3 x 3 neighbourhood, Y their coordinates relative to r's (weighted linear
+    least squares in (alpha', b, 2 b delta), with a small ridge on delta, which keeps it in the
+    neighbours' tangent plane), and returns X_r + delta. Falls back to X_r with fewer than 6
+    usable neighbours (in the map, on the object, within 4 pixel sizes in 3D: not across a depth
+    step), no maximum (b <= 0) or a peak over 1.5 pixel sizes away.
+    """
+    h, w = hw
+    i, j = r // w, r % w
+    d = jnp.arange(-1, 2)
+    ii = (i[:, None, None] + d[None, :, None] + 0 * d[None, None, :]).reshape(-1, 9)
+    jj = (j[:, None, None] + d[None, None, :] + 0 * d[None, :, None]).reshape(-1, 9)
+    inside = (ii >= 0) & (ii < h) & (jj >= 0) & (jj < w)
+    nb = jnp.clip(ii, 0, h - 1) * w + jnp.clip(jj, 0, w - 1)  # [N, 9]
+    s = jnp.einsum("nkc,nc->nk", Z[nb], f)
+    Xr = xyz[r]
+    Y = (xyz[nb] - Xr[:, None]) / pixel_mm  # [N, 9, 3] in pixel sizes
+    y2 = jnp.sum(Y * Y, -1)
+    near = s >= 0.5 * s[:, 4:5]  # in the peak: drops a neighbour whose descriptor is unrelated
+    wt = (inside & rmask[nb] & (y2 <= 16.0) & near).astype(jnp.float32)
+    phi = jnp.concatenate([jnp.ones_like(y2)[..., None], -y2[..., None], Y], -1)  # [N, 9, 5]
+    A = jnp.einsum("nk,nka,nkb->nab", wt, phi, phi)
+    A = A + jnp.diag(jnp.asarray([1e-6, 1e-6, 1e-3, 1e-3, 1e-3]))
+    sol = jnp.linalg.solve(A, jnp.einsum("nk,nka,nk->na", wt, phi, s)[..., None])[..., 0]
+    b = sol[:, 1]
+    delta = sol[:, 2:] / (2.0 * jnp.where(b > 0, b, 1.0)[:, None])
+    ok = (jnp.sum(wt, -1) >= 6) & (b > 0) & (jnp.sum(delta * delta, -1) <= 1.5**2)
+    ok &= jnp.all(jnp.isfinite(delta), -1)
+    return Xr + jnp.where(ok[:, None], delta * pixel_mm, 0.0)
+
+
+def reciprocal_matches(real_desc: Array, render_desc: Array, render_xyz: Array,
+                       render_mask: Array, render_edge: Array, pixel_mm: Array, *,
+                       num_matches: int, crop_size: int, subpixel: bool = True,
+                       block: int = 1024) -> Matches:
+    """Mutual-nearest-neighbour matches of render edge pixels, N per (hypothesis, view).
+
+    Args:
+      real_desc, render_desc: [K, V, h, w, C] descriptors F and Z (normalised here).
+      render_xyz: [K, V, h, w, 3] object coordinates (mm); render_mask, render_edge
+        [K, V, h, w] bool.
+      pixel_mm: [K, V] size of a map pixel at the object (``Renders.pixel_mm``), the length
+        scale of the sub-pixel fit.
+      num_matches: N, static.
+      crop_size: H = W of the crop, to convert map pixels to crop pixels.
+      subpixel: refine each match's 3D point (module docstring); False keeps the render
+        pixel's coordinate.
+      block: render rows per similarity block (memory block x h w per pair).
+
+    Returns :class:`Matches` with leading [K, V]; see the module docstring for the rule.
+    """
+    K_, V, h, w, C = real_desc.shape
+    P = h * w
+    if num_matches > P:
+        raise ValueError(f"num_matches={num_matches} exceeds the {h}x{w} map's {P} pixels")
+    unit = lambda x: x * jax.lax.rsqrt(jnp.maximum(jnp.sum(x * x, -1, keepdims=True), 1e-24))  # noqa: E731
+    F = unit(real_desc.astype(jnp.float32)).reshape(K_ * V, P, C)
+    Z = unit(render_desc.astype(jnp.float32)).reshape(K_ * V, P, C)
+    xyz = render_xyz.astype(jnp.float32).reshape(K_ * V, P, 3)
+    rmask = render_mask.reshape(K_ * V, P)
+    edge = render_edge.reshape(K_ * V, P)
+    pix = jnp.asarray(pixel_mm, jnp.float32).reshape(K_ * V)
+    blk = min(block, P)
+
+    def one(F, Z, xyz, rmask, edge, pix):
+        fwd, fwd_sim, bwd = _mutual_nn(Z, F, rmask, blk)
+        mutual = bwd[fwd] == jnp.arange(P)
+        valid = mutual & rmask & edge
+        score = jnp.where(valid, fwd_sim, -jnp.inf)
+        sim, r = jax.lax.top_k(score, num_matches)
+        keep = jnp.isfinite(sim)
+        q = fwd[r]
+        X = _subpixel_points(Z, F[q], r, xyz, rmask, (h, w), pix) if subpixel else xyz[r]
+        # Map pixel (row i, column j) -> crop pixel ((j + 0.5) W / w - 0.5, (i + 0.5) H / h - 0.5).
+        col = (q % w).astype(jnp.float32)
+        row = (q // w).astype(jnp.float32)
+        uv = jnp.stack([(col + 0.5) * (crop_size / w) - 0.5,
+                        (row + 0.5) * (crop_size / h) - 0.5], -1)
+        return Matches(
+            points_3d=jnp.where(keep[:, None], X, 0.0),
+            points_2d=jnp.where(keep[:, None], uv, 0.0),
+            weights=keep.astype(jnp.float32),
+            similarity=sim,
+            render_pixel=r.astype(jnp.int32),
+            real_pixel=q,
+        )
+
+    m = jax.vmap(one)(F, Z, xyz, rmask, edge, pix)
+    return jax.tree.map(lambda a: a.reshape((K_, V) + a.shape[1:]), m)
+
+
+def refine_step(
+    network: Network,
+    mesh: RasterMesh,
+    crops: Array,
+    crop_K: Array,
+    T_cam_world: Array,
+    hypotheses: Array,
+    *,
+    output_size: int,
+    num_matches: int,
+    subpixel: bool = True,
+    ambient: float = 0.3,
+    huber_px: float = 2.0,
+    tukey_px: float | None = 8.0,
+    pnp_iterations: int = 10,
+    block: int = 1024,
+) -> RefineResult:
+    """One 3PT-R iteration: render, encode, match, multi-view PnP (module docstring).
+
+    Args:
+      network: ``network(real [1, V, H, W, 3], renders [1, K, V, H, W, 3]) -> dict`` with the
+        refiner contract's outputs (``real_desc``, ``render_desc`` [1, K, V, h, w, C],
+        ``mask_logits`` [1, K, V, h, w], ``view_scores`` [1, K, V], ``scores`` [1, K]).
+      mesh: the prepared mesh (``to_raster_mesh(prepare_mesh(...))``).
+      crops: [V, H, W, 3] real crops (H = W), uint8 or float in [0, 1].
+      crop_K: [V, 3, 3] intrinsics of the crops (``crop_and_resize(..., K)`` with boxes from
+        :func:`crop_boxes`).
+      T_cam_world: [V, 4, 4] extrinsics (single view: the identity, V = 1).
+      hypotheses: [K, 4, 4] T_world_obj (mm).
+      output_size: h = w of the network's maps (``RefinerConfig.output_size``).
+      num_matches: N matches kept per (hypothesis, view).
+      subpixel: sub-pixel refinement of matched real pixels (:func:`reciprocal_matches`).
+      ambient: ambient term of the renders' headlight shading (match the training renders).
+      huber_px, tukey_px, pnp_iterations: ``solve_pnp``'s robust scales (crop pixels) and
+        iteration cap.
+      block: similarity rows per block in matching (memory).
+
+    Pure and jit-able with ``network``, the sizes and the keyword options static; gradients are
+    not meant to flow through it (the trainer calls it under ``stop_gradient``).
+    """
+    crops = jnp.asarray(crops)
+    V, H, W = crops.shape[:3]
+    if H != W:
+        raise ValueError(f"crops must be square (RefinerConfig.crop_size), got {H}x{W}")
+    Kh = hypotheses.shape[0]
+    if crop_K.shape != (V, 3, 3) or T_cam_world.shape != (V, 4, 4):
+        raise ValueError(
+            f"crop_K must be [V, 3, 3] and T_cam_world [V, 4, 4] with V={V} crops, got "
+            f"{crop_K.shape} and {T_cam_world.shape}"
+        )
+    if hypotheses.shape != (Kh, 4, 4):
+        raise ValueError(f"hypotheses must be [K, 4, 4], got {hypotheses.shape}")
+    hypotheses = jnp.asarray(hypotheses, jnp.float32)
+    rend = render_hypotheses(mesh, crop_K, T_cam_world, hypotheses, crop_size=H,
+                             output_size=output_size, ambient=ambient)
+    out = network(crops[None], rend.rgb[None])
+    mask_logits = out["mask_logits"][0]
+    matches = reciprocal_matches(
+        out["real_desc"][0], out["render_desc"][0], rend.xyz, rend.mask, rend.edge, rend.pixel_mm,
+        num_matches=num_matches, crop_size=H, subpixel=subpixel, block=block)
+
+    crop_K = jnp.asarray(crop_K, jnp.float32)
+    T_cam_world = jnp.asarray(T_cam_world, jnp.float32)
+
+    def pnp(p3, p2, wts, init):
+        return solve_pnp(p3, p2, crop_K, T_cam_world, wts, init, huber_px=huber_px,
+                         tukey_px=tukey_px, max_iterations=pnp_iterations)
+
+    refined, info = jax.vmap(pnp)(matches.points_3d, matches.points_2d, matches.weights,
+                                  hypotheses)
+    # solve_pnp returns the initial pose when it cannot solve; a pose that left the front of
+    # every camera is no refinement either.
+    c = transform(T_cam_world[None], transform(refined, mesh.center[None])[:, None])  # [K,V,1,3]
+    in_front = jnp.any(c[..., 0, 2] > 0, axis=1)
+    refined = jnp.where(in_front[:, None, None], refined, hypotheses)
+    return RefineResult(
+        hypotheses=refined,
+        scores=out["scores"][0],
+        mask_logits=mask_logits,
+        view_scores=out["view_scores"][0],
+        matches=matches,
+        pnp=info,
+    )
+
