@@ -283,3 +283,20 @@ def test_gathered_padded_mesh_renders_like_the_unpadded_mesh(toy):
         np.testing.assert_array_equal(np.asarray(got["mask"]), np.asarray(ref["mask"]))
         np.testing.assert_allclose(np.asarray(got["depth"]), np.asarray(ref["depth"]),
                                    atol=1e-3)
+
+
+def test_stacking_a_textured_and_an_untextured_mesh_keeps_both_colours(toy):
+    box = load_mesh(toy / "models" / "obj_000001.ply", models_info=None)
+    ball = load_mesh(toy / "models" / "obj_000002.ply", models_info=None)
+    n = ball.num_vertices
+    ball = ball.replace(colors=np.tile([[0.9, 0.2, 0.1]], (n, 1)))
+    tex = np.zeros((20, 30, 3), np.uint8) + np.array([40, 200, 90], np.uint8)
+    box = box.replace(uv=np.random.default_rng(0).random((box.num_vertices, 2)), texture=tex)
+    meshes = ri.RefinerMeshes.from_meshes({1: box, 2: ball}, texture_size=16)
+    assert meshes.stacked.has_texture and meshes.stacked.texture.shape == (2, 16, 16, 3)
+    T = _pose([0.3, -0.5, 0.2], [10, -5, 300])
+    for i, mesh in enumerate((box, ball)):
+        ref = render(to_raster_mesh(mesh), T, K_IMG, (H, W), ("mask", "rgb"))
+        got = render(meshes.take(i), T, K_IMG, (H, W), ("mask", "rgb"))
+        assert np.asarray(ref["mask"]).sum() > 100
+        np.testing.assert_allclose(np.asarray(got["rgb"]), np.asarray(ref["rgb"]), atol=1e-5)
