@@ -69,7 +69,7 @@ from threept_jax.pipeline.pan_and_scan import SCALE_PRIOR, SCALE_REFERENCE_TILE
 __all__ = [
     "AttachRenders", "BankCache", "DecodeExample", "ExampleConfig", "PhotometricAugment",
     "PhotometricConfig", "SampleTile", "augment_image", "crop_transform", "detection_dataset",
-    "find_shards", "warp_crop",
+    "find_shards", "pad_symmetries", "warp_crop",
 ]
 
 
@@ -376,6 +376,17 @@ class SampleTile(grain.transforms.RandomMap):
         }
 
 
+def pad_symmetries(sym: np.ndarray, max_symmetries: int) -> tuple[np.ndarray, np.ndarray]:
+    """[S, 4, 4] -> (float32 [Ns, 4, 4], bool [Ns]): all S symmetry transforms when S <= Ns,
+    else Ns evenly spaced ones, padded with the identity; the mask marks the real ones."""
+    Ns = max_symmetries
+    keep = (np.arange(len(sym)) if len(sym) <= Ns
+            else np.round(np.linspace(0, len(sym) - 1, Ns)).astype(np.int64))
+    out = np.tile(np.eye(4, dtype=np.float32), (Ns, 1, 1))
+    out[:len(keep)] = sym[keep]
+    return out, np.arange(Ns) < len(keep)
+
+
 class AttachRenders(grain.transforms.RandomMap):
     """Prior renders, padded symmetries and sampled templates of the query object (step 3)."""
 
@@ -389,13 +400,7 @@ class AttachRenders(grain.transforms.RandomMap):
         out = dict(ex)
         out["prior_rgb"] = check_render_size(bank.priors(), cfg.render_size, str(bank.path))
         sym = bank.symmetries
-        Ns = cfg.max_symmetries
-        keep = (np.arange(len(sym)) if len(sym) <= Ns
-                else np.round(np.linspace(0, len(sym) - 1, Ns)).astype(np.int64))
-        symmetries = np.tile(np.eye(4, dtype=np.float32), (Ns, 1, 1))
-        symmetries[:len(keep)] = sym[keep]
-        out["symmetries"] = symmetries
-        out["symmetry_mask"] = np.arange(Ns) < len(keep)
+        out["symmetries"], out["symmetry_mask"] = pad_symmetries(sym, cfg.max_symmetries)
         if not cfg.num_templates:
             return out
 

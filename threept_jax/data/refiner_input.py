@@ -80,7 +80,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from threept_jax.data.banks import ObjectEntry, bank_symmetries, load_object_table
-from threept_jax.data.detector_input import BankCache, DecodeExample, find_shards, warp_crop
+from threept_jax.data.detector_input import (
+    BankCache,
+    DecodeExample,
+    find_shards,
+    pad_symmetries,
+    warp_crop,
+)
 from threept_jax.data.ply import load_ply_vertices
 from threept_jax.geometry.camera import crop_intrinsics
 from threept_jax.pipeline.refinement import crop_boxes
@@ -88,7 +94,7 @@ from threept_jax.render.mesh import RasterMesh, bucket_size, load_mesh, prepare_
 
 __all__ = [
     "RefinerExampleConfig", "RefinerMeshes", "SampleInstance", "Sphere", "load_mesh_paths",
-    "object_spheres", "pad_symmetries", "perturb_poses", "refiner_dataset", "resample_mask",
+    "object_spheres", "perturb_poses", "refiner_dataset", "resample_mask",
 ]
 
 
@@ -232,17 +238,6 @@ class RefinerMeshes:
 
 
 # --------------------------------------------------------------------------- pieces
-
-
-def pad_symmetries(sym: np.ndarray, max_symmetries: int) -> tuple[np.ndarray, np.ndarray]:
-    """[S, 4, 4] -> (float32 [Ns, 4, 4], bool [Ns]): the first S (all) or Ns evenly spaced ones,
-    identity padding (the detector pipeline's rule, ``AttachRenders``)."""
-    Ns = max_symmetries
-    keep = (np.arange(len(sym)) if len(sym) <= Ns
-            else np.round(np.linspace(0, len(sym) - 1, Ns)).astype(np.int64))
-    out = np.tile(np.eye(4, dtype=np.float32), (Ns, 1, 1))
-    out[:len(keep)] = sym[keep]
-    return out, np.arange(Ns) < len(keep)
 
 
 def perturb_poses(T_cam_obj: np.ndarray, center: np.ndarray, diameter: float, num: int,
