@@ -40,7 +40,8 @@ class Detection:
     Attributes:
       obj_id: which onboarded object.
       box: [4] amodal box, xyxy pixel-edge coordinates of the input image.
-      score: detection score in [0, 1] (``models.detector.DEFAULT_SCORE_MODE``: presence).
+      score: detection score in [0, 1] (``models.detector.DEFAULT_SCORE_MODE``: the best
+        template match).
       poses: [K, 4, 4] T_cam_obj hypotheses, best first (mm).
       pose_scores: [K] template-match score of each hypothesis (invalid ones are -inf).
       template_scores: [T] cosine similarity of the detection's embedding with every template

@@ -95,3 +95,22 @@ def test_single_view_hypotheses(model_points):
     assert np.degrees(float(geodesic_angle(T[1, :3, :3], other_cam))) < 15.0
     angles = np.degrees(np.asarray(geodesic_angle(T[:, None, :3, :3], T[None, :, :3, :3])))
     assert angles[~np.eye(4, dtype=bool)].min() >= 45.0
+
+
+def test_boxes_far_larger_than_the_image_keep_the_object_in_front_of_the_camera(model_points):
+    """A 1e6 px amodal box (a coarse-scale detection) once put the model across the camera
+    plane and returned NaN poses, which crashed `python -m infer bop` when it rendered masks.
+    The depth now stops at the model's extent: every hypothesis is finite and every model
+    point in front of the camera (checked with a float64 NumPy transform)."""
+    K = np.array([[300, 0, 159.5], [0, 300, 119.5], [0, 0, 1]], np.float32)
+    rotations = np.asarray(super_fibonacci_rotations(64), np.float32)
+    scores = np.random.default_rng(1).random(64).astype(np.float32)
+    extent = np.linalg.norm(model_points.max(0) - model_points.min(0))
+    for box in ([0, 0, 1e6, 1e6], [-3e5, -2e5, 4e5, 3e5]):
+        T, _, valid = single_view_hypotheses(np.asarray(box, np.float32), K, scores, rotations,
+                                             model_points)
+        T = np.asarray(T, np.float64)
+        assert np.isfinite(T).all() and bool(np.asarray(valid)[0])
+        z = np.einsum("kij,nj->kni", T[:, :3, :3], model_points) + T[:, None, :3, 3]
+        assert (z[..., 2] > 0).all()
+        assert np.allclose(T[:, 2, 3], extent, rtol=1e-3)  # as near as allowed

@@ -55,7 +55,7 @@ def test_perfect_detections_score_one_and_none_score_zero():
     # Perfect: the two counted instances with their boxes and poses; the 5 %-visible one is
     # ignored (BOP rule), so missing it costs nothing.
     perfect = _outputs(rec["bbox_obj"][:2], [0.9, 0.8], [0, 1], rec["T_cam_obj"][:2])
-    m = full_image_metrics([{"product": perfect, "presence": perfect}], [im], OBJ_IDS, _models())
+    m = full_image_metrics([{"product": perfect, "presence": perfect, "template": perfect}], [im], OBJ_IDS, _models())
     assert m["eval/ap50"] == pytest.approx(1.0) and m["eval/ap"] == pytest.approx(1.0)
     assert m["eval/ap50_product"] == m["eval/ap50_presence"] == pytest.approx(1.0)
     assert m["eval/bop6d_ap"] == pytest.approx(1.0)

@@ -84,12 +84,13 @@ def boxes_to_pixels(boxes: Array, image_hw: tuple[int, int]) -> Array:
 
 #: What :func:`detection_scores` can rank patches by. The default, used by inference and by the
 #: training evaluation's headline (``eval/ap50``), is the mode that measured best on full
-#: held-out images: presence led in every run of issue 13 (full-image AP50 presence / product /
-#: template: 0.0011 / 0.0005 / 0.0004, 0.0058 / 0.0054 / 0.0033, 0.018 / 0.001 / 0.000;
-#: docs/training.md, "CPU recipes"), though at these levels the evidence is weak; revisit it
-#: with a detector trained at scale (``eval/ap50_<mode>`` logs all three).
+#: held-out images over the 21 evaluations of issue 13's CPU runs (docs/training.md, "CPU
+#: recipes"): mean AP50 template 0.0045, presence 0.0031, product 0.0018; template also led the
+#: longest run, zero-shot on held-out parts (0.0063 / 0.0021 / 0.0017 over 13 evaluations). It
+#: is the paper's score. At these levels the evidence is weak: revisit it with a detector
+#: trained at scale (``eval/ap50_<mode>`` logs all three).
 SCORE_MODES = ("product", "presence", "template")
-DEFAULT_SCORE_MODE = "presence"
+DEFAULT_SCORE_MODE = "template"
 
 
 def detection_scores(presence_logit: Array, detection_logit: Array | None, mode: str) -> Array:

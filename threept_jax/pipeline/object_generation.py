@@ -63,7 +63,10 @@ def translation_from_box(box_xyxy: Array, K: Array, R: Array, points: Array,
 
     The first depth guess places the model's diameter-sized extent at the box diagonal with the
     mean focal length; each step rescales z by projected/target diagonal and moves x, y so that
-    the projected box centre lands on the target centre.
+    the projected box centre lands on the target centre. The depth never goes below the model's
+    extent (the box diagonal of ``points``), which keeps every point in front of the camera: a
+    box far larger than the image (an amodal box of a detection at a coarse scale) would
+    otherwise put the object across the camera plane and make the projection non-finite.
     """
     box_xyxy = jnp.asarray(box_xyxy, jnp.float32)
     K = jnp.asarray(K, jnp.float32)
@@ -74,7 +77,7 @@ def translation_from_box(box_xyxy: Array, K: Array, R: Array, points: Array,
     diag = jnp.maximum(diag, 1.0)
     extent = jnp.linalg.norm(points.max(0) - points.min(0))
     f = (K[..., 0, 0] + K[..., 1, 1]) / 2
-    z = f * extent / diag
+    z = jnp.maximum(f * extent / diag, extent)
     fx, fy, cx, cy = K[..., 0, 0], K[..., 1, 1], K[..., 0, 2], K[..., 1, 2]
 
     def lift(uv, z):
@@ -87,7 +90,8 @@ def translation_from_box(box_xyxy: Array, K: Array, R: Array, points: Array,
     def step(_, t):
         box = projected_box(points, R, t, K)
         scale = jnp.linalg.norm(box[..., 2:] - box[..., :2], axis=-1) / diag
-        t = t * scale[..., None]  # size ~ 1/z: moving along the ray keeps the centre's pixel
+        # size ~ 1/z: moving along the ray keeps the centre's pixel; never nearer than extent.
+        t = t * jnp.maximum(scale, extent / t[..., 2])[..., None]
         box = projected_box(points, R, t, K)
         err = centre - ((box[..., :2] + box[..., 2:]) / 2 - 0.5)
         shift = jnp.stack([err[..., 0] * t[..., 2] / fx, err[..., 1] * t[..., 2] / fy,
