@@ -1,6 +1,6 @@
 """The main job on built-in defaults: ``python -m demo`` (what ``make demo`` runs).
 
-Both ways 3PT is used, on full images, on a 2-core CPU in about ten minutes, with nothing
+Both ways 3PT is used, on full images, on a 2-core CPU in five to seven minutes, with nothing
 downloaded and nothing from outside the repository:
 
 1. **Adapted** (``python -m train.adapt``, a user's own parts): five procedural parts of a fixed

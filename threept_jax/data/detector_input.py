@@ -68,7 +68,8 @@ from threept_jax.pipeline.pan_and_scan import SCALE_PRIOR, SCALE_REFERENCE_TILE
 
 __all__ = [
     "AttachRenders", "BankCache", "DecodeExample", "ExampleConfig", "PhotometricAugment",
-    "PhotometricConfig", "SampleTile", "augment_image", "crop_transform", "detection_dataset",
+    "PhotometricConfig", "SampleTile", "augment_image", "crop_transform", "decoded_records",
+    "detection_dataset",
     "find_shards", "pad_symmetries", "warp_crop",
 ]
 
@@ -497,6 +498,30 @@ def find_shards(records_dir, split: str) -> list[str]:
     return shards
 
 
+def decoded_records(records_dir, split: str, *, seed: int, shuffle: bool, repeat: bool,
+                    process_index: int, process_count: int, num_records: int | None
+                    ) -> tuple[grain.MapDataset, int]:
+    """This process's decoded records of a split (every ``process_count``-th from
+    ``process_index``, the first ``num_records`` of them if given, shuffled, repeated) and the
+    seed its random maps derive from (distinct per process: the per-index generators would
+    otherwise repeat). Shared by the detector's and the refiner's pipelines."""
+    source = grain.sources.ArrayRecordDataSource(find_shards(records_dir, split))
+    if not 0 <= process_index < process_count:
+        raise ValueError(f"process_index {process_index} not in [0, {process_count})")
+    ds = grain.MapDataset.source(source)[process_index::process_count]
+    if num_records is not None:
+        ds = ds[:num_records]
+    if len(ds) == 0:
+        raise ValueError(f"{records_dir}/{split} has {len(source)} records, too few for "
+                         f"{process_count} processes")
+    seed = (int(seed) * 1_000_003 + process_index) % 2**31
+    if shuffle:
+        ds = ds.shuffle(seed=seed)
+    if repeat:
+        ds = ds.repeat(None)
+    return ds.map(DecodeExample()), seed
+
+
 def detection_dataset(
     records_dir,
     split: str,
@@ -524,22 +549,9 @@ def detection_dataset(
         config = dataclasses.replace(config, split=split)
     table = load_object_table(records_dir) if table is None else table
     banks = BankCache(table)
-    source = grain.sources.ArrayRecordDataSource(find_shards(records_dir, split))
-    if not 0 <= process_index < process_count:
-        raise ValueError(f"process_index {process_index} not in [0, {process_count})")
-    ds = grain.MapDataset.source(source)[process_index::process_count]
-    if num_records is not None:
-        ds = ds[:num_records]
-    if len(ds) == 0:
-        raise ValueError(f"{records_dir}/{split} has {len(source)} records, too few for "
-                         f"{process_count} processes")
-    # Distinct streams per process: the per-index generators would otherwise repeat.
-    seed = (int(seed) * 1_000_003 + process_index) % 2**31
-    if shuffle:
-        ds = ds.shuffle(seed=seed)
-    if repeat:
-        ds = ds.repeat(None)
-    ds = ds.map(DecodeExample())
+    ds, seed = decoded_records(records_dir, split, seed=seed, shuffle=shuffle, repeat=repeat,
+                               process_index=process_index, process_count=process_count,
+                               num_records=num_records)
     ds = ds.random_map(SampleTile(config, banks), seed=seed + 1)
     ds = ds.random_map(AttachRenders(config, banks), seed=seed + 2)
     if photometric is not None:

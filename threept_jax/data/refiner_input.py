@@ -82,8 +82,7 @@ import numpy as np
 from threept_jax.data.banks import ObjectEntry, bank_symmetries, load_object_table
 from threept_jax.data.detector_input import (
     BankCache,
-    DecodeExample,
-    find_shards,
+    decoded_records,
     pad_symmetries,
     warp_crop,
 )
@@ -382,21 +381,9 @@ def refiner_dataset(
     """
     table = load_object_table(records_dir)
     spheres = object_spheres(records_dir)
-    source = grain.sources.ArrayRecordDataSource(find_shards(records_dir, split))
-    if not 0 <= process_index < process_count:
-        raise ValueError(f"process_index {process_index} not in [0, {process_count})")
-    ds = grain.MapDataset.source(source)[process_index::process_count]
-    if num_records is not None:
-        ds = ds[:num_records]
-    if len(ds) == 0:
-        raise ValueError(f"{records_dir}/{split} has {len(source)} records, too few for "
-                         f"{process_count} processes")
-    seed = (int(seed) * 1_000_003 + process_index) % 2**31
-    if shuffle:
-        ds = ds.shuffle(seed=seed)
-    if repeat:
-        ds = ds.repeat(None)
-    ds = ds.map(DecodeExample())
+    ds, seed = decoded_records(records_dir, split, seed=seed, shuffle=shuffle, repeat=repeat,
+                               process_index=process_index, process_count=process_count,
+                               num_records=num_records)
     ds = ds.random_map(SampleInstance(config, table, spheres), seed=seed + 1)
     if batch_size is not None:
         ds = ds.batch(batch_size, drop_remainder=repeat)

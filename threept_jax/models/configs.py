@@ -150,8 +150,26 @@ class ViTConfig:
         return self.width // self.num_heads
 
 
+class _VariantSizes:
+    """``width``, ``depth`` and ``patch_size`` of a config's ``variant`` (:func:`decode_variant`)."""
+
+    variant: str
+
+    @property
+    def width(self) -> int:
+        return decode_variant(self.variant)["width"]
+
+    @property
+    def depth(self) -> int:
+        return decode_variant(self.variant)["depth"]
+
+    @property
+    def patch_size(self) -> int:
+        return decode_variant(self.variant)["patch_size"]
+
+
 @dataclasses.dataclass(frozen=True)
-class DetectorConfig:
+class DetectorConfig(_VariantSizes):
     """3PT-D, the early-fusion two-tower detector (DESIGN.md section 1.1).
 
     Attributes:
@@ -240,14 +258,6 @@ class DetectorConfig:
         )
 
     @property
-    def width(self) -> int:
-        return decode_variant(self.variant)["width"]
-
-    @property
-    def patch_size(self) -> int:
-        return decode_variant(self.variant)["patch_size"]
-
-    @property
     def grid_size(self) -> int:
         """Patches per side of an image tile."""
         return self.image_size // self.patch_size
@@ -270,7 +280,7 @@ class DetectorConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class RefinerConfig:
+class RefinerConfig(_VariantSizes):
     """3PT-R, the render-and-compare refiner network (DESIGN.md section 1.3, paper section 3.3).
 
     Attributes:
@@ -344,18 +354,6 @@ class RefinerConfig:
             dtype=self.dtype,
             param_dtype=self.param_dtype,
         )
-
-    @property
-    def width(self) -> int:
-        return decode_variant(self.variant)["width"]
-
-    @property
-    def depth(self) -> int:
-        return decode_variant(self.variant)["depth"]
-
-    @property
-    def patch_size(self) -> int:
-        return decode_variant(self.variant)["patch_size"]
 
     @property
     def grid_size(self) -> int:
