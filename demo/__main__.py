@@ -35,21 +35,12 @@ ADAPTED_SEED, ZERO_SHOT_SEED = 7, 8
 
 def zero_shot(out: pathlib.Path, workdir: pathlib.Path, test_scenes: int, seed: int) -> dict:
     """Scenes of parts the detector never saw (val and test shards), detected by it."""
-    from datagen import generate as G
-    from train.adapt import figures, infer_bop
+    from train import adapt
 
-    data = out / "data"
-    for shard, name in enumerate(("val", "test")):
-        G.main(["--meshes", "procedural:5", "--seed", str(seed), "--out", str(data / name),
-                "--split", "val", "--num-scenes", str(2 * test_scenes), "--num-shards", "2",
-                "--shard", str(shard), "--images-per-scene", "2", "--resolution", "320", "240",
-                "--spp", "4", "--max-depth", "3", "--instances", "8", "--distinct", "1", "5",
-                "--val-fraction", "0", "--quiet"])
-    val = figures(infer_bop(workdir, data / "val", out / "val", out / "cache"))
-    test = figures(infer_bop(workdir, data / "test", out / "test", out / "cache", overlays=6,
-                             overlay_threshold=val["box_f1_threshold"]))
-    return {"test": test, "val": val, "overlay_threshold": val["box_f1_threshold"],
-            "overlays": str(out / "test" / "overlays")}
+    args = adapt.parse_args(["--meshes", "procedural:5", "--seed", str(seed), "--workdir",
+                             str(out), "--test-scenes", str(test_scenes)])
+    adapt.generate(args, out / "data", sets=("val", "test"))
+    return adapt.test(workdir, out / "data", out, out / "cache", overlays=6)
 
 
 def _line(name: str, figs: dict) -> str:

@@ -97,8 +97,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 # --------------------------------------------------------------------------- stages 1-2
 
 
-def generate(args, data: pathlib.Path) -> None:
-    """Train scenes, and val and test scenes as the two shards of one held-out set."""
+def generate(args, data: pathlib.Path, sets: Sequence[str] = ("train", "val", "test")) -> None:
+    """Scenes of ``args.meshes``: ``train``, and ``val`` and ``test`` as the two shards of one
+    held-out set (disjoint scenes of the same mesh pool)."""
     from datagen import generate as G
 
     common = ["--meshes", *args.meshes, "--mesh-units", args.mesh_units,
@@ -106,15 +107,14 @@ def generate(args, data: pathlib.Path) -> None:
               "--max-depth", "3", "--instances", str(args.instances),
               "--distinct", "1", str(min(args.instances, 6)), "--val-fraction", "0",
               "--seed", str(args.seed), "--quiet"]
-    runs = [("train", ["--split", "train", "--num-scenes", str(args.train_scenes),
-                       "--images-per-scene", "4"])]
+    runs = {"train": ["--split", "train", "--num-scenes", str(args.train_scenes),
+                      "--images-per-scene", "4"]}
     for shard, name in enumerate(("val", "test")):
-        runs.append((name, ["--split", "val", "--num-scenes", str(2 * args.test_scenes),
-                            "--images-per-scene", "2", "--num-shards", "2",
-                            "--shard", str(shard)]))
-    for name, extra in runs:
+        runs[name] = ["--split", "val", "--num-scenes", str(2 * args.test_scenes),
+                      "--images-per-scene", "2", "--num-shards", "2", "--shard", str(shard)]
+    for name in sets:
         print(f"   {name}: {data / name}", flush=True)
-        G.main(["--out", str(data / name), *extra, *common])
+        G.main(["--out", str(data / name), *runs[name], *common])
 
 
 def pack(data: pathlib.Path, records: pathlib.Path, render_size: int) -> None:
@@ -228,6 +228,19 @@ def figures(result: dict) -> dict:
             "pose_ap_mssd": pose.get("ap_mssd"), "pose_ap_mspd": pose.get("ap_mspd")}
 
 
+def test(workdir: pathlib.Path, data: pathlib.Path, out: pathlib.Path, cache: pathlib.Path,
+         overlays: int) -> dict:
+    """The best checkpoint of ``workdir`` on ``data/val`` (whose best-F1 score becomes the
+    overlay threshold) and on ``data/test``: figures, threshold and the overlays' folder."""
+    val = figures(infer_bop(workdir, data / "val", out / "val", cache))
+    threshold = val["box_f1_threshold"]
+    print(f"   overlay threshold {threshold:.3f} (best F1 {val['box_f1']:.3f} on the val scenes)")
+    result = figures(infer_bop(workdir, data / "test", out / "test", cache, overlays=overlays,
+                               overlay_threshold=threshold))
+    return {"test": result, "val": val, "overlay_threshold": threshold,
+            "overlays": str(out / "test" / "overlays")}
+
+
 def main(argv: Sequence[str] | None = None) -> dict:
     args = parse_args(argv)
     w = args.workdir
@@ -254,18 +267,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
     minutes["training"] = _done(start) / 60
 
     start = _stage(f"5/5 full-image test on new scenes -> {w / 'test'}")
-    val = figures(infer_bop(w, data / "val", w / "val", cache))
-    threshold = val["box_f1_threshold"]
-    print(f"   overlay threshold {threshold:.3f} (best F1 {val['box_f1']:.3f} on the val scenes)")
-    test = figures(infer_bop(w, data / "test", w / "test", cache, overlays=args.overlays,
-                             overlay_threshold=threshold))
+    report = test(w, data, w, cache, args.overlays)
+    test_figures = report["test"]
     minutes["test"] = _done(start) / 60
-    report = {"test": test, "val": val, "overlay_threshold": threshold, "steps": budget["steps"],
-              "config": config.model.variant, "minutes": minutes,
-              "overlays": str(w / "test" / "overlays")}
+    report.update(steps=budget["steps"], config=config.model.variant, minutes=minutes)
     (w / "report.json").write_text(json.dumps(report, indent=1, default=float))
     print(f"\nadapted detector, test scenes (full images, all parts queried): box AP50 "
-          f"{test['box_ap50']:.3f}, AP {test['box_ap']:.3f}, BOP 6D AP {test['pose_ap']:.3f}"
+          f"{test_figures['box_ap50']:.3f}, AP {test_figures['box_ap']:.3f}, BOP 6D AP "
+          f"{test_figures['pose_ap']:.3f}"
           f"\nreport {w / 'report.json'}, overlays {w / 'test' / 'overlays'}")
     return report
 

@@ -61,15 +61,17 @@ def test_soft_negative_weights_hand_case():
     np.testing.assert_allclose(f(pred, tgt, mask, matched, 0.5), [[1.0, 0.75, 1.0]], atol=1e-6)
 
 
+def _unit_rows(rng, n, d):
+    x = rng.normal(size=(n, d))
+    return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+
 def _hand_case():
     gt = [0.2, 0.2, 0.6, 0.64]
     preds = [[0.2, 0.2, 0.6, 0.6], [0.2, 0.2, 0.6, 0.4], [0.7, 0.7, 0.9, 0.9]]
     presence = [2.0, 0.5, -1.0]
     rng = np.random.default_rng(0)
-    emb = rng.normal(size=(3, 4))
-    emb /= np.linalg.norm(emb, axis=-1, keepdims=True)
-    bank = rng.normal(size=(3, 4))
-    bank /= np.linalg.norm(bank, axis=-1, keepdims=True)
+    emb, bank = _unit_rows(rng, 3, 4), _unit_rows(rng, 3, 4)
     outputs = {
         "boxes": jnp.asarray([[cxcywh(b) for b in preds]], jnp.float32),
         "presence_logits": jnp.asarray([presence], jnp.float32),
@@ -199,10 +201,7 @@ def _four_hypotheses():
     preds = [[0.22, 0.2, 0.6, 0.58], [0.2, 0.2, 0.6, 0.4], [0.7, 0.7, 0.9, 0.9],
              [0.4, 0.4, 0.8, 0.8]]
     rng = np.random.default_rng(3)
-    emb = rng.normal(size=(4, 5))
-    emb /= np.linalg.norm(emb, axis=-1, keepdims=True)
-    bank = rng.normal(size=(6, 5))
-    bank /= np.linalg.norm(bank, axis=-1, keepdims=True)
+    emb, bank = _unit_rows(rng, 4, 5), _unit_rows(rng, 6, 5)
     outputs = {
         "boxes": jnp.asarray([[cxcywh(b) for b in preds]], jnp.float32),
         "presence_logits": jnp.asarray([[3.0, 0.0, -1.0, -0.5]], jnp.float32),
