@@ -1,5 +1,9 @@
 """Train a model: ``python train/launch.py --config train/configs/detector.py:tiny --workdir DIR``.
 
+The config's ``trainer`` picks the trainer: ``train/configs/detector.py`` trains 3PT-D
+(``train/trainer_detector.py``), ``train/configs/refiner.py`` trains 3PT-R
+(``train/trainer_refiner.py``); both share one run machinery (``train/trainer.py``).
+
 Overrides use ml_collections' syntax, e.g. ``--config.data_dir=/data/records
 --config.total_steps=2000 --config.mesh.fsdp=4``; a key outside the config schema
 (``train/run_config.py``) stops the launcher before anything runs, naming the valid keys. The
@@ -45,12 +49,34 @@ def _fail(message: str) -> NoReturn:
     sys.exit(2)
 
 
+def _config_trainer(argv: list[str]) -> str:
+    """The ``trainer`` of the config file named by ``--config`` (``"detector"`` if unreadable)."""
+    import importlib.util
+
+    for i, arg in enumerate(argv):
+        if arg.startswith(("--config=", "-config=")):
+            value = arg.split("=", 1)[1]
+        elif arg in ("--config", "-config") and i + 1 < len(argv):
+            value = argv[i + 1]
+        else:
+            continue
+        path, _, name = value.partition(":")
+        try:
+            spec = importlib.util.spec_from_file_location("_run_config_file", path)
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+            return module.get_config(*([name] if name else [])).get("trainer", "detector")
+        except Exception:  # the launcher's own parse reports a bad config file
+            return "detector"
+    return "detector"
+
+
 def parse_flags(argv: list[str]) -> list[str]:
     """absl's flag parsing, with a one-line error for a config override naming no key.
 
     ml_collections reports an unknown override key as an AttributeError traceback; every key
     of the schema exists in the config (``default_config``), so a failing override is named
-    here by checking each override's path against the schema.
+    here by checking each override's path against the config's trainer's schema.
     """
     from train import run_config
 
@@ -59,11 +85,12 @@ def parse_flags(argv: list[str]) -> list[str]:
     except flags.Error as e:
         _fail(f"{e}\nPass --helpfull to see the flags.")
     except (AttributeError, KeyError, TypeError) as e:
+        trainer = _config_trainer(argv)
         for arg in argv[1:]:
             m = _OVERRIDE.match(arg)
             if m:
                 try:
-                    run_config.check_key(m.group(1))
+                    run_config.check_key(m.group(1), trainer)
                 except run_config.ConfigError as bad:
                     _fail(f"{bad} (in {arg.split('=')[0]})")
         _fail(f"a --config override names a key the config file does not define: {e}")
@@ -79,9 +106,6 @@ def main(argv) -> None:
         run_config.check_config(config)
     except run_config.ConfigError as e:
         _fail(f"{e} (in {flags.FLAGS['config'].config_filename})")
-    if config.trainer != "detector":
-        _fail(f"unknown trainer {config.trainer!r} in the config (known: detector); set "
-              "--config.trainer=detector")
     if not flags.FLAGS["verbosity"].present:
         # Orbax logs every checkpoint step at INFO; our own progress goes to the console.
         logging.set_verbosity(logging.WARNING)
@@ -91,13 +115,15 @@ def main(argv) -> None:
     sharding.maybe_initialize_distributed(config.distributed)
     import jax
 
-    from train import trainer_detector
+    if config.trainer == "refiner":
+        from train.trainer_refiner import RefinerTrainer as TrainerClass
+    else:
+        from train.trainer_detector import DetectorTrainer as TrainerClass
 
     print(f"process {jax.process_index()}/{jax.process_count()}, devices: {jax.devices()}",
           flush=True)
     try:
-        trainer = trainer_detector.DetectorTrainer(config, _WORKDIR.value,
-                                                   allow_config_change=_ALLOW_CHANGE.value)
+        trainer = TrainerClass(config, _WORKDIR.value, allow_config_change=_ALLOW_CHANGE.value)
     except (ValueError, FileNotFoundError, KeyError) as e:
         # Everything the trainer checks before it trains: the config against the devices, the
         # data and the workdir's run.

@@ -1,21 +1,30 @@
 """The run config of 3PT-D training: its schema, its check, and the library configs built from it.
 
 A run config (``train/configs/<name>.py``) is an ``ml_collections.ConfigDict`` made by
-:func:`default_config`, which fills every key from the dataclass that owns it, so a config
-file states only its overrides (big_vision's ``Model(**config.model)``):
+:func:`default_config` for one trainer (``config.trainer``: ``"detector"`` or ``"refiner"``),
+which fills every key from the dataclass that owns it, so a config file states only its
+overrides (big_vision's ``Model(**config.model)``). :data:`SCHEMAS` maps each trainer's
+sections to their dataclasses:
 
-============================  =================================================================
-``model``                     :class:`~threept_jax.models.configs.DetectorConfig` (``dtype`` may
-                              also be ``"auto"``: :func:`resolve_dtype`)
-``loss``                      :class:`~threept_jax.losses.detection.DetectorLossConfig`
-``data``                      :class:`~threept_jax.data.detector_input.ExampleConfig` less the fields
-                              the trainer derives (:data:`DERIVED_EXAMPLE_FIELDS`), and
-                              :class:`InputConfig`
-``data.photometric``          :class:`~threept_jax.data.detector_input.PhotometricConfig`
-``optim`` / ``eval``          :class:`OptimConfig` / :class:`EvalConfig`
-``checkpoint`` / ``mesh``     :class:`CheckpointConfig` / :class:`MeshConfig`
-top level                     :class:`RunSettings`
-============================  =================================================================
+==================  ======================================  ======================================
+section             detector                                refiner
+==================  ======================================  ======================================
+``model``           ``models.configs.DetectorConfig``       ``models.configs.RefinerConfig``
+                    (``dtype`` may also be ``"auto"``:      (idem)
+                    :func:`resolve_dtype`)
+``loss``            ``losses.detection.DetectorLossConfig`` ``losses.refiner.RefinerLossConfig``
+``data``            ``detector_input.ExampleConfig`` less   ``refiner_input.RefinerExampleConfig``
+                    the fields the trainer derives          less the derived fields, and
+                    (:data:`DERIVED_EXAMPLE_FIELDS`), and   :class:`InputConfig`
+                    :class:`InputConfig`
+``data.photometric`` ``detector_input.PhotometricConfig``   (none)
+``refine``          (none)                                  ``pipeline.refinement.RefineSettings``
+``eval``            :class:`EvalConfig`                     :class:`RefinerEvalConfig`
+``optim``,          :class:`OptimConfig`,                   (the same)
+``checkpoint``,     :class:`CheckpointConfig`,
+``mesh``            :class:`MeshConfig`
+top level           :class:`RunSettings`                    (the same)
+==================  ======================================  ======================================
 
 :func:`check_config` refuses any key outside this schema, in a config file or on the command
 line, with one line naming the key and the valid ones, and out-of-range numbers of the sections
@@ -39,9 +48,12 @@ import ml_collections
 import numpy as np
 
 from threept_jax.data.detector_input import ExampleConfig, PhotometricConfig
+from threept_jax.data.refiner_input import RefinerExampleConfig
 from threept_jax.data.run_dir import COMPUTE_ONLY_FIELDS, CONFIG_FILE, CONFIG_HISTORY_FILE
 from threept_jax.losses.detection import DetectorLossConfig
-from threept_jax.models.configs import DetectorConfig
+from threept_jax.losses.refiner import RefinerLossConfig
+from threept_jax.models.configs import DetectorConfig, RefinerConfig
+from threept_jax.pipeline.refinement import RefineSettings
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,7 +66,7 @@ class RunSettings:
     initialises the parameters of a fresh run (fine-tuning, ``python -m train.adapt --from``);
     the model config must be the same; ignored once the run has its own checkpoint."""
 
-    trainer: str = "detector"  # which train/trainer_<name>.py launch.py runs
+    trainer: str = "detector"  # which train/trainer_<name>.py launch.py runs (SCHEMAS)
     seed: int = 0
     total_steps: int = 1000
     batch_size: int = 8
@@ -112,6 +124,23 @@ class EvalConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class RefinerEvalConfig:
+    """Periodic held-out evaluation of 3PT-R (``train/eval_refiner.py``).
+
+    ``data_dir``: a records folder whose objects training never saw (``""``: the ``val``
+    split of ``config.data_dir``); ``split``: its split read.
+    """
+
+    every_steps: int = 500  # 0: no periodic evaluation
+    data_dir: str = ""
+    split: str = "val"
+    num_examples: int = 64  # instances evaluated (one per image, as training samples them)
+    batch_size: int = 8
+    num_steps: int = 3  # refinement iterations measured (reported after 1 and after this many)
+    seed: int = 1
+
+
+@dataclasses.dataclass(frozen=True)
 class CheckpointConfig:
     """Checkpoints every ``every_steps`` (and at the end and on SIGTERM); the latest
     ``max_to_keep`` and the best by ``best_metric`` are kept."""
@@ -134,58 +163,83 @@ class MeshConfig:
     fsdp_min_size: int = 2**14
 
 
-#: ExampleConfig fields the trainer sets itself (from the model and the split), not ``data``.
-DERIVED_EXAMPLE_FIELDS = ("tile_size", "render_size", "num_templates", "split")
+#: Example-config fields the trainer sets itself (from the model and the split), not ``data``.
+DERIVED_EXAMPLE_FIELDS = {
+    ExampleConfig: ("tile_size", "render_size", "num_templates", "split"),
+    RefinerExampleConfig: ("crop_size", "output_size"),
+}
 
-#: section path -> the dataclasses whose fields are its keys.
-SECTIONS: dict[str, tuple[type, ...]] = {
-    "model": (DetectorConfig,),
-    "loss": (DetectorLossConfig,),
-    "data": (ExampleConfig, InputConfig),
-    "data.photometric": (PhotometricConfig,),
+_COMMON_SECTIONS: dict[str, tuple[type, ...]] = {
     "optim": (OptimConfig,),
-    "eval": (EvalConfig,),
     "checkpoint": (CheckpointConfig,),
     "mesh": (MeshConfig,),
 }
+
+#: trainer -> section path -> the dataclasses whose fields are its keys.
+SCHEMAS: dict[str, dict[str, tuple[type, ...]]] = {
+    "detector": {
+        "model": (DetectorConfig,),
+        "loss": (DetectorLossConfig,),
+        "data": (ExampleConfig, InputConfig),
+        "data.photometric": (PhotometricConfig,),
+        "eval": (EvalConfig,),
+        **_COMMON_SECTIONS,
+    },
+    "refiner": {
+        "model": (RefinerConfig,),
+        "loss": (RefinerLossConfig,),
+        "data": (RefinerExampleConfig, InputConfig),
+        "refine": (RefineSettings,),
+        "eval": (RefinerEvalConfig,),
+        **_COMMON_SECTIONS,
+    },
+}
+
+
+def sections(trainer: str) -> dict[str, tuple[type, ...]]:
+    """The sections of ``trainer``'s config; :class:`ConfigError` for an unknown trainer."""
+    if trainer not in SCHEMAS:
+        raise ConfigError(f"unknown trainer {trainer!r}; known trainers: "
+                          f"{', '.join(sorted(SCHEMAS))} (config key 'trainer')")
+    return SCHEMAS[trainer]
 
 
 class ConfigError(ValueError):
     """A config key outside the schema or a value out of range (the message is one line)."""
 
 
-def _fields(section: str) -> list[dataclasses.Field]:
-    out = []
-    for cls in SECTIONS[section]:
-        out += [f for f in dataclasses.fields(cls)
-                if not (cls is ExampleConfig and f.name in DERIVED_EXAMPLE_FIELDS)]
-    return out
+def _fields(cls: type) -> list[dataclasses.Field]:
+    derived = DERIVED_EXAMPLE_FIELDS.get(cls, ())
+    return [f for f in dataclasses.fields(cls) if f.name not in derived]
 
 
-def valid_keys(section: str = "") -> list[str]:
+def valid_keys(section: str = "", trainer: str = "detector") -> list[str]:
     """Keys a section (``""``: the top level, ``"data.photometric"``: nested) may hold."""
+    schema = sections(trainer)
     if not section:
         return sorted([f.name for f in dataclasses.fields(RunSettings)]
-                      + [s for s in SECTIONS if "." not in s])
-    if section not in SECTIONS:
-        raise ConfigError(f"unknown config section {section!r}; sections: "
-                          f"{', '.join(sorted(SECTIONS))}")
-    keys = [f.name for f in _fields(section)]
-    keys += [s.rpartition(".")[2] for s in SECTIONS if s.rpartition(".")[0] == section]
+                      + [s for s in schema if "." not in s])
+    if section not in schema:
+        raise ConfigError(f"unknown config section {section!r} of the {trainer} trainer; "
+                          f"sections: {', '.join(sorted(schema))}")
+    keys = [f.name for cls in schema[section] for f in _fields(cls)]
+    keys += [s.rpartition(".")[2] for s in schema if s.rpartition(".")[0] == section]
     return sorted(keys)
 
 
-def check_key(path: str) -> None:
-    """Raise :class:`ConfigError` unless ``path`` (``"model.variant"``) is in the schema."""
+def check_key(path: str, trainer: str = "detector") -> None:
+    """Raise :class:`ConfigError` unless ``path`` (``"model.variant"``) is in ``trainer``'s
+    schema."""
+    schema = sections(trainer)
     parts = path.split(".")
     for i in range(len(parts)):
         section, key = ".".join(parts[:i]), parts[i]
-        keys = valid_keys(section)
+        keys = valid_keys(section, trainer)
         if key not in keys:
             where = f"of {section}" if section else "at the top level"
             raise ConfigError(f"unknown config key {path!r}; valid keys {where}: "
                               f"{', '.join(keys)}")
-        if ".".join(parts[:i + 1]) not in SECTIONS:
+        if ".".join(parts[:i + 1]) not in schema:
             if i != len(parts) - 1:
                 raise ConfigError(f"config key {'.'.join(parts[:i + 1])!r} is a value, not a "
                                   f"section, so {path!r} does not exist")
@@ -193,14 +247,17 @@ def check_key(path: str) -> None:
 
 
 def check_config(config: ml_collections.ConfigDict) -> None:
-    """Raise :class:`ConfigError` on the first key of ``config`` outside the schema, then on
-    the values that break :data:`VALUE_RULES` (all of them, in one line)."""
+    """Raise :class:`ConfigError` on an unknown ``trainer``, then on the first key of
+    ``config`` outside that trainer's schema, then on the values that break
+    :data:`VALUE_RULES` (all of them, in one line)."""
+    trainer = config.get("trainer", "detector")
+    schema = sections(trainer)
 
     def walk(node, prefix):
         for key in sorted(node.keys()):
             path = f"{prefix}{key}"
-            check_key(path)
-            if path in SECTIONS:
+            check_key(path, trainer)
+            if path in schema:
                 if not isinstance(node[key], (ml_collections.ConfigDict, dict)):
                     raise ConfigError(f"config key {path!r} must be a section (a ConfigDict), "
                                       f"got {node[key]!r}")
@@ -271,6 +328,8 @@ VALUE_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "eval.orientation_threshold_deg": _number_in(0, 180, lo_open=True, hi_open=False),
     "eval.match_iou": _number_in(0, 1, lo_open=True, hi_open=False),
     "eval.seed": _int_at_least(0),
+    "eval.num_steps": _int_at_least(1),
+    "eval.split": (lambda v: v in ("train", "val"), "'train' or 'val'"),
     "checkpoint.every_steps": _int_at_least(0),
     "checkpoint.max_to_keep": _int_at_least(1),
     "checkpoint.best_mode": (lambda v: v in ("max", "min"), "'max' or 'min'"),
@@ -373,24 +432,23 @@ def _config_value(value: Any, hint: Any) -> Any:
     return value
 
 
-def _section_defaults(section: str) -> ml_collections.ConfigDict:
+def _section_defaults(classes: tuple[type, ...]) -> ml_collections.ConfigDict:
     out = ml_collections.ConfigDict()
-    for cls in SECTIONS[section]:
+    for cls in classes:
         hints = typing.get_type_hints(cls)
-        for f in dataclasses.fields(cls):
-            if cls is ExampleConfig and f.name in DERIVED_EXAMPLE_FIELDS:
-                continue
+        for f in _fields(cls):
             default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
             out[f.name] = _config_value(default, hints[f.name])
     return out
 
 
-def default_config() -> ml_collections.ConfigDict:
-    """Every key of the schema at its dataclass default (config files override from here)."""
-    c = ml_collections.ConfigDict(dataclasses.asdict(RunSettings()))
-    for section in SECTIONS:
+def default_config(trainer: str = "detector") -> ml_collections.ConfigDict:
+    """Every key of ``trainer``'s schema at its dataclass default (config files override from
+    here)."""
+    c = ml_collections.ConfigDict(dataclasses.asdict(RunSettings(trainer=trainer)))
+    for section, classes in sections(trainer).items():
         parent, _, name = section.rpartition(".")
-        (c[parent] if parent else c)[name] = _section_defaults(section)
+        (c[parent] if parent else c)[name] = _section_defaults(classes)
     return c
 
 
@@ -404,24 +462,46 @@ def resolve_dtype(name: Any) -> Any:
     return jnp.dtype(name)
 
 
-def model_config(config: ml_collections.ConfigDict) -> DetectorConfig:
-    """``DetectorConfig(**config.model)`` with ``dtype`` resolved."""
+def _trainer(config: ml_collections.ConfigDict) -> str:
+    return config.get("trainer", "detector")
+
+
+def model_config(config: ml_collections.ConfigDict) -> DetectorConfig | RefinerConfig:
+    """The trainer's model config (``DetectorConfig(**config.model)`` or ``RefinerConfig``)
+    with ``dtype`` resolved."""
     fields = config.model.to_dict()
     if "dtype" in fields:
         fields["dtype"] = resolve_dtype(fields["dtype"])
-    return DetectorConfig(**fields)
+    (cls,) = sections(_trainer(config))["model"]
+    return cls(**fields)
 
 
-def loss_config(config: ml_collections.ConfigDict) -> DetectorLossConfig:
-    """``DetectorLossConfig(**config.loss)``."""
-    return DetectorLossConfig(**config.loss.to_dict())
+def loss_config(config: ml_collections.ConfigDict) -> DetectorLossConfig | RefinerLossConfig:
+    """The trainer's loss config built from ``config.loss``."""
+    (cls,) = sections(_trainer(config))["loss"]
+    return cls(**config.loss.to_dict())
+
+
+def refiner_example_config(config: ml_collections.ConfigDict) -> RefinerExampleConfig:
+    """The refiner's ``RefinerExampleConfig``: the data section's fields with the crop and map
+    sizes of the model."""
+    model = model_config(config)
+    names = {f.name for f in _fields(RefinerExampleConfig)}
+    fields = {k: v for k, v in config.data.to_dict().items() if k in names}
+    return RefinerExampleConfig(**fields, crop_size=model.crop_size,
+                                output_size=model.output_size)
+
+
+def refine_settings(config: ml_collections.ConfigDict) -> RefineSettings:
+    """``RefineSettings(**config.refine)``."""
+    return RefineSettings(**config.refine.to_dict())
 
 
 def example_config(config: ml_collections.ConfigDict, *, split: str, num_templates: int
                    ) -> ExampleConfig:
     """The data section's ExampleConfig fields, with the tile and render sizes of the model."""
     model = model_config(config)
-    names = {f.name for f in dataclasses.fields(ExampleConfig)} - set(DERIVED_EXAMPLE_FIELDS)
+    names = {f.name for f in _fields(ExampleConfig)}
     fields = {k: v for k, v in config.data.to_dict().items() if k in names}
     if "scale_prior" in fields:
         fields["scale_prior"] = tuple(fields["scale_prior"])

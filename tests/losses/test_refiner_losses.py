@@ -7,10 +7,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from threept_jax.eval.pose_error import mssd
 from threept_jax.losses.refiner import (
     MATCHING_TEMPERATURE,
+    RefinerLossConfig,
     classification_loss,
     matching_loss,
+    mssd_errors,
     segmentation_loss,
 )
 
@@ -355,3 +358,42 @@ def test_segmentation_by_hand_and_empty():
     (loss, m), g = jax.value_and_grad(f, has_aux=True)(jnp.asarray(logits))
     assert float(loss) == 0.0 and float(m["iou"]) == 0.0
     assert np.all(np.asarray(g) == 0.0)
+
+
+def _rigid(rng):
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+    T[:3, 3] = rng.normal(0, 30, 3) + [0, 0, 500]
+    return T
+
+
+def test_mssd_errors_match_the_bop_float64_reference_with_symmetries_and_padding():
+    rng = np.random.default_rng(3)
+    pts = rng.normal(0, 20, (50, 3))
+    # A 4-fold symmetry about z (with a non-zero offset on one transform) and 2 padded rows.
+    sym = np.tile(np.eye(4), (6, 1, 1))
+    for i, a in enumerate((90, 180, 270)):
+        c, s_ = np.cos(np.radians(a)), np.sin(np.radians(a))
+        sym[i + 1, :2, :2] = [[c, -s_], [s_, c]]
+    sym[2, :3, 3] = [1.0, -2.0, 0.5]
+    sym_mask = np.array([True, True, True, True, False, False])
+    sym[4:] = np.diag([5.0, 5.0, 5.0, 1.0])  # padding: must be ignored
+    T_gt = _rigid(rng)
+    T_est = np.stack([_rigid(rng) for _ in range(3)] + [T_gt @ sym[2]])
+    pmask = np.ones(56, bool)
+    pmask[50:] = False
+    pts_pad = np.concatenate([pts, np.full((6, 3), 1e4)])
+    got = np.asarray(mssd_errors(T_est, T_gt, pts_pad, pmask, sym, sym_mask))
+    want = [mssd(T[:3, :3], T[:3, 3], T_gt[:3, :3], T_gt[:3, 3], pts,
+                 (sym[:4, :3, :3], sym[:4, :3, 3])) for T in T_est]
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-2)
+    assert got[-1] < 1e-2  # a symmetric copy of the ground truth has no error
+
+
+def test_refiner_loss_config_refuses_negative_weights_and_bad_temperature():
+    with pytest.raises(ValueError, match="classification_weight"):
+        RefinerLossConfig(classification_weight=-1.0)
+    with pytest.raises(ValueError, match="temperature"):
+        RefinerLossConfig(temperature=0.0)

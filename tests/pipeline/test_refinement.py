@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from threept_jax.geometry.camera import crop_intrinsics, look_at
 from threept_jax.pipeline.refinement import (
+    RefineSettings,
     crop_boxes,
     reciprocal_matches,
     refine_step,
@@ -40,7 +41,8 @@ TRACES = []
 def _step(network, mesh, crops, crop_K, T_cam_world, hypotheses):
     TRACES.append(crops.shape)  # runs only while tracing
     return refine_step(network, mesh, crops, crop_K, T_cam_world, hypotheses,
-                       output_size=MAP, num_matches=NUM_MATCHES, ambient=1.0)
+                       output_size=MAP,
+                       settings=RefineSettings(num_matches=NUM_MATCHES, ambient=1.0))
 
 
 STEP = jax.jit(_step, static_argnums=0)

@@ -220,8 +220,8 @@ def test_launcher_refuses_bad_input_in_one_line(toy, tmp_path):
     cases = {
         "steps": (tmp_path / "w_steps", cfg, ["--config.total_steps=0"], SUBPROCESS_ENV,
                   ["total_steps=0 (must be an integer >= 1)"]),
-        "trainer": (tmp_path / "w_trainer", cfg, ["--config.trainer=refiner"], SUBPROCESS_ENV,
-                    ["unknown trainer 'refiner'"]),
+        "trainer": (tmp_path / "w_trainer", cfg, ["--config.trainer=segmenter"], SUBPROCESS_ENV,
+                    ["unknown trainer 'segmenter'"]),
         "lr": (tmp_path / "w_lr", cfg, ["--config.optim.learning_rate=-0.001"], SUBPROCESS_ENV,
                ["optim.learning_rate=-0.001 (must be a number > 0)"]),
         "divisible": (tmp_path / "w_div", small_config(toy, batch_size=3, **{"mesh.data": -1}),

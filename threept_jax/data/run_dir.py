@@ -1,4 +1,4 @@
-"""The run directory of a 3PT-D training run: the one home of its on-disk format.
+"""The run directory of a training run (3PT-D or 3PT-R): the one home of its on-disk format.
 
 Training (``train/``) writes it, inference (``infer/checkpoint.py``) reads it; neither imports the
 other, both import this module::
@@ -9,8 +9,9 @@ other, both import this module::
                              {"step", "time", "forced" (keys changed with the trainer's
                              permission), "changes": {key: {"old", "new"}}, "previous_config"},
                              oldest first (written only when a resume changed the config)
-      detector.json          the DetectorConfig (``DetectorConfig.to_dict()``), MODEL_FILE:
-                             inference rebuilds the model from it
+      detector.json          the model config, ``MODEL_FILES[model]``: ``detector.json`` (the
+      or refiner.json        DetectorConfig) or ``refiner.json`` (the RefinerConfig), from
+                             ``to_dict()``: inference rebuilds the model from it
       checkpoints/<step>/    one Orbax ``CheckpointManager`` step, CHECKPOINT_DIR, holding the
                              composite items
         state/               {"step", "params", "opt_state"} (STATE_ITEM, ``StandardSave``)
@@ -34,17 +35,21 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from threept_jax.data.files import atomic_write_bytes, atomic_write_json
-from threept_jax.models.configs import DetectorConfig
+from threept_jax.models.configs import DetectorConfig, RefinerConfig
 
 CONFIG_FILE = "config.json"
 CONFIG_HISTORY_FILE = "config_history.json"
-MODEL_FILE = "detector.json"
+#: model kind (``config.trainer``) -> (its model-config file, its config class).
+MODEL_FILES: dict[str, tuple[str, type]] = {
+    "detector": ("detector.json", DetectorConfig),
+    "refiner": ("refiner.json", RefinerConfig),
+}
 CHECKPOINT_DIR = "checkpoints"
 TB_DIR = "tb"
 STATE_ITEM = "state"
 DATA_ITEM = "data"
 
-#: DetectorConfig fields that change how the model computes, not its parameters: a run may
+#: Model-config fields that change how the model computes, not its parameters: a run may
 #: resume (or be loaded) with other values.
 COMPUTE_ONLY_FIELDS = ("dtype", "attention_impl", "remat")
 
@@ -52,9 +57,13 @@ COMPUTE_ONLY_FIELDS = ("dtype", "attention_impl", "remat")
 class RunDir:
     """Paths, side files and checkpoint listing of one run directory (module docstring)."""
 
-    def __init__(self, workdir):
+    def __init__(self, workdir, model: str = "detector"):
+        """``model``: the kind of run, a key of :data:`MODEL_FILES` (``config.trainer``)."""
+        if model not in MODEL_FILES:
+            raise ValueError(f"unknown model kind {model!r}; known: {', '.join(MODEL_FILES)}")
         # Orbax refuses relative paths; resolve once here for every reader and writer.
         self.path = pathlib.Path(workdir).expanduser().resolve()
+        self.model = model
 
     @property
     def config_file(self) -> pathlib.Path:
@@ -66,7 +75,7 @@ class RunDir:
 
     @property
     def model_file(self) -> pathlib.Path:
-        return self.path / MODEL_FILE
+        return self.path / MODEL_FILES[self.model][0]
 
     @property
     def checkpoint_dir(self) -> pathlib.Path:
@@ -104,33 +113,41 @@ class RunDir:
         atomic_write_json(self.config_history_file, [*self.read_config_history(), entry],
                           indent=2)
 
-    def write_model_config(self, model_cfg: DetectorConfig) -> None:
-        """``detector.json``: the model config inference rebuilds the detector from."""
+    def write_model_config(self, model_cfg: DetectorConfig | RefinerConfig) -> None:
+        """``detector.json`` / ``refiner.json``: the model config inference rebuilds the model
+        from."""
         atomic_write_json(self.model_file, model_cfg.to_dict(), indent=2, sort_keys=True)
 
     def read_config(self) -> dict[str, Any]:
         """The run config as a plain dict ({} when the run wrote none)."""
         return json.loads(self.config_file.read_text()) if self.config_file.exists() else {}
 
-    def read_model_config(self, dtype: str | None = None) -> DetectorConfig:
-        """The run's DetectorConfig, with the compute ``dtype`` replaced when given."""
+    def read_model_config(self, dtype: str | None = None) -> DetectorConfig | RefinerConfig:
+        """The run's model config, with the compute ``dtype`` replaced when given."""
         if not self.model_file.exists():
             raise FileNotFoundError(
-                f"{self.model_file} not found: {self.path} is not a 3PT-D training workdir "
-                "(train one with `python train/launch.py --config train/configs/detector.py:tiny "
-                "--workdir DIR`)")
+                f"{self.model_file} not found: {self.path} is not a {self.model} training "
+                f"workdir (train one with `python train/launch.py --config "
+                f"train/configs/{self.model}.py:tiny --workdir DIR`)")
         fields = json.loads(self.model_file.read_text())
         if dtype is not None:
             fields["dtype"] = dtype
-        return DetectorConfig(**fields)
+        return MODEL_FILES[self.model][1](**fields)
 
-    def check_same_model(self, model_cfg: DetectorConfig, fix: str | None = None) -> None:
+    def check_same_model(self, model_cfg: DetectorConfig | RefinerConfig,
+                         fix: str | None = None) -> None:
         """Refuse to resume a run of another model into this workdir, naming both.
 
-        Compares ``model_cfg`` with the saved detector.json, ignoring
-        :data:`COMPUTE_ONLY_FIELDS`; does nothing when the workdir holds no model config.
-        ``fix`` replaces the advice that ends the message.
+        Refuses a workdir that holds a run of another kind (its model file), then compares
+        ``model_cfg`` with the saved model config, ignoring :data:`COMPUTE_ONLY_FIELDS`; does
+        nothing when the workdir holds no model config. ``fix`` replaces the advice that ends
+        the message.
         """
+        for kind, (name, _) in MODEL_FILES.items():
+            if kind != self.model and (self.path / name).exists():
+                raise ValueError(
+                    f"{self.path} holds a {kind} run ({name}), not a {self.model} run; pass a "
+                    "fresh --workdir")
         if not self.model_file.exists():
             return
         saved = json.loads(self.model_file.read_text())

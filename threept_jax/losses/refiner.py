@@ -34,6 +34,7 @@ as ``temperature``; the loss is differentiable in it (tested).
 
 from __future__ import annotations
 
+import dataclasses
 import numbers
 
 import jax
@@ -241,3 +242,49 @@ def segmentation_loss(mask_logits: Array, visible_mask: Array,
     union = jnp.sum(pred | t, axis=(-2, -1))
     iou = jnp.where(union > 0, inter / jnp.maximum(union, 1), 1.0)
     return loss, {"loss": loss, "iou": jnp.sum(jnp.where(keep, iou, 0.0)) / maps}
+
+
+def mssd_errors(T_est: Array, T_gt: Array, points: Array, point_mask: Array, symmetries: Array,
+                symmetry_mask: Array) -> Array:
+    """Symmetry-aware pose error (BOP's MSSD, mm) of J estimates of one instance: [J].
+
+    T_est [J, 4, 4], T_gt [4, 4] (same frame, mm); points [P, 3] object-frame model points with
+    point_mask [P] (padding False); symmetries [Ns, 4, 4] object-frame transforms S with
+    symmetry_mask [Ns] (the identity among them). MSSD = min over S of max over points of
+    ``|T_est x - T_gt S x|``, as :func:`threept_jax.eval.pose_error.mssd` on the same points
+    (the classification target uses the corners of the prepared mesh, a close stand-in for
+    every vertex). Not differentiated (the target sits under ``stop_gradient``).
+    """
+    T_est = jnp.asarray(T_est, jnp.float32)
+    T_gt = jnp.asarray(T_gt, jnp.float32)
+    x = jnp.asarray(points, jnp.float32)
+    Tg = jnp.einsum("ij,sjk->sik", T_gt, jnp.asarray(symmetries, jnp.float32))  # [Ns, 4, 4]
+    xe = jnp.einsum("jab,pb->jpa", T_est[:, :3, :3], x) + T_est[:, None, :3, 3]  # [J, P, 3]
+    xg = jnp.einsum("sab,pb->spa", Tg[:, :3, :3], x) + Tg[:, None, :3, 3]  # [Ns, P, 3]
+    d2 = jnp.sum(jnp.square(xe[:, None] - xg[None]), -1)  # [J, Ns, P]
+    d2 = jnp.max(jnp.where(jnp.asarray(point_mask, bool), d2, 0.0), -1)
+    d2 = jnp.min(jnp.where(jnp.asarray(symmetry_mask, bool), d2, jnp.inf), -1)
+    return jnp.sqrt(d2)
+
+
+@dataclasses.dataclass(frozen=True)
+class RefinerLossConfig:
+    """Weights of the three 3PT-R terms and the matching temperature.
+
+    total = matching_weight * matching + classification_weight * classification
+            + segmentation_weight * segmentation.
+
+    ``temperature``: tau of :func:`matching_loss` (module docstring: why 0.05).
+    """
+
+    matching_weight: float = 1.0
+    classification_weight: float = 0.5
+    segmentation_weight: float = 1.0
+    temperature: float = MATCHING_TEMPERATURE
+
+    def __post_init__(self):
+        for name in ("matching_weight", "classification_weight", "segmentation_weight"):
+            if not float(getattr(self, name)) >= 0:
+                raise ValueError(f"RefinerLossConfig.{name} must be >= 0, got "
+                                 f"{getattr(self, name)}")
+        _check_temperature(self.temperature)

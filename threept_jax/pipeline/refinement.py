@@ -44,6 +44,7 @@ neighbours keep X_r. Working in 3D, creases and slanted faces need no special ca
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable, NamedTuple
 
 import jax
@@ -307,6 +308,84 @@ def reciprocal_matches(real_desc: Array, render_desc: Array, render_xyz: Array,
     return jax.tree.map(lambda a: a.reshape((K_, V) + a.shape[1:]), m)
 
 
+@dataclasses.dataclass(frozen=True)
+class RefineSettings:
+    """Options of the refinement step, one set for training and inference.
+
+    Attributes:
+      num_matches: N matches kept per (hypothesis, view) (:func:`reciprocal_matches`).
+      subpixel: sub-pixel refinement of the matched 3D points.
+      ambient: ambient term of the renders' headlight shading (training and inference must
+        render alike: the network learnt to read these renders).
+      huber_px, tukey_px: ``solve_pnp``'s robust scales, in crop pixels.
+      pnp_iterations: ``solve_pnp``'s iteration cap.
+      block: similarity rows per block in matching (memory block x h w per pair).
+      max_faces: the renders' face budget: meshes are decimated to it when prepared
+        (``render.mesh.prepare_mesh``), for training and inference alike.
+    """
+
+    num_matches: int = 128
+    subpixel: bool = True
+    ambient: float = 0.3
+    huber_px: float = 2.0
+    tukey_px: float | None = 8.0
+    pnp_iterations: int = 10
+    block: int = 1024
+    max_faces: int = 4096
+
+    def __post_init__(self):
+        for name in ("num_matches", "pnp_iterations", "block", "max_faces"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"RefineSettings.{name} must be >= 1, got {getattr(self, name)}")
+        if not 0.0 <= self.ambient <= 1.0:
+            raise ValueError(f"RefineSettings.ambient must be in [0, 1], got {self.ambient}")
+        if not self.huber_px > 0 or (self.tukey_px is not None and not self.tukey_px > 0):
+            raise ValueError("RefineSettings.huber_px and tukey_px must be > 0 (tukey_px may be "
+                             f"None), got {self.huber_px} and {self.tukey_px}")
+
+
+def update_hypotheses(outputs: dict, rend: Renders, mesh: RasterMesh, crop_K: Array,
+                      T_cam_world: Array, hypotheses: Array,
+                      settings: RefineSettings = RefineSettings()) -> RefineResult:
+    """The step after the network: matches from its outputs, multi-view PnP per hypothesis.
+
+    ``outputs``: the network's dict for ONE instance, without the batch axis (``real_desc``,
+    ``render_desc`` [K, V, h, w, C], ``mask_logits`` [K, V, h, w], ``view_scores`` [K, V],
+    ``scores`` [K]); ``rend``: :func:`render_hypotheses` of ``hypotheses`` [K, 4, 4]. The
+    trainer calls this on its own forward pass (under ``stop_gradient``) for the
+    classification target, so training and inference share the step without a second forward.
+    """
+    s = settings
+    crop_size = rend.rgb.shape[-2]
+    matches = reciprocal_matches(
+        outputs["real_desc"], outputs["render_desc"], rend.xyz, rend.mask, rend.edge,
+        rend.pixel_mm, num_matches=s.num_matches, crop_size=crop_size, subpixel=s.subpixel,
+        block=s.block)
+    crop_K = jnp.asarray(crop_K, jnp.float32)
+    T_cam_world = jnp.asarray(T_cam_world, jnp.float32)
+    hypotheses = jnp.asarray(hypotheses, jnp.float32)
+
+    def pnp(p3, p2, wts, init):
+        return solve_pnp(p3, p2, crop_K, T_cam_world, wts, init, huber_px=s.huber_px,
+                         tukey_px=s.tukey_px, max_iterations=s.pnp_iterations)
+
+    refined, info = jax.vmap(pnp)(matches.points_3d, matches.points_2d, matches.weights,
+                                  hypotheses)
+    # solve_pnp returns the initial pose when it cannot solve; a pose that left the front of
+    # every camera is no refinement either.
+    c = transform(T_cam_world[None], transform(refined, mesh.center[None])[:, None])  # [K,V,1,3]
+    in_front = jnp.any(c[..., 0, 2] > 0, axis=1)
+    refined = jnp.where(in_front[:, None, None], refined, hypotheses)
+    return RefineResult(
+        hypotheses=refined,
+        scores=outputs["scores"],
+        mask_logits=outputs["mask_logits"],
+        view_scores=outputs["view_scores"],
+        matches=matches,
+        pnp=info,
+    )
+
+
 def refine_step(
     network: Network,
     mesh: RasterMesh,
@@ -316,13 +395,7 @@ def refine_step(
     hypotheses: Array,
     *,
     output_size: int,
-    num_matches: int,
-    subpixel: bool = True,
-    ambient: float = 0.3,
-    huber_px: float = 2.0,
-    tukey_px: float | None = 8.0,
-    pnp_iterations: int = 10,
-    block: int = 1024,
+    settings: RefineSettings = RefineSettings(),
 ) -> RefineResult:
     """One 3PT-R iteration: render, encode, match, multi-view PnP (module docstring).
 
@@ -337,15 +410,11 @@ def refine_step(
       T_cam_world: [V, 4, 4] extrinsics (single view: the identity, V = 1).
       hypotheses: [K, 4, 4] T_world_obj (mm).
       output_size: h = w of the network's maps (``RefinerConfig.output_size``).
-      num_matches: N matches kept per (hypothesis, view).
-      subpixel: sub-pixel refinement of matched real pixels (:func:`reciprocal_matches`).
-      ambient: ambient term of the renders' headlight shading (match the training renders).
-      huber_px, tukey_px, pnp_iterations: ``solve_pnp``'s robust scales (crop pixels) and
-        iteration cap.
-      block: similarity rows per block in matching (memory).
+      settings: :class:`RefineSettings` (matches, renders' shading, PnP).
 
-    Pure and jit-able with ``network``, the sizes and the keyword options static; gradients are
-    not meant to flow through it (the trainer calls it under ``stop_gradient``).
+    Pure and jit-able with ``network``, the sizes and ``settings`` static; gradients are not
+    meant to flow through it (the trainer runs :func:`update_hypotheses` under
+    ``stop_gradient``).
     """
     crops = jnp.asarray(crops)
     V, H, W = crops.shape[:3]
@@ -361,33 +430,6 @@ def refine_step(
         raise ValueError(f"hypotheses must be [K, 4, 4], got {hypotheses.shape}")
     hypotheses = jnp.asarray(hypotheses, jnp.float32)
     rend = render_hypotheses(mesh, crop_K, T_cam_world, hypotheses, crop_size=H,
-                             output_size=output_size, ambient=ambient)
-    out = network(crops[None], rend.rgb[None])
-    mask_logits = out["mask_logits"][0]
-    matches = reciprocal_matches(
-        out["real_desc"][0], out["render_desc"][0], rend.xyz, rend.mask, rend.edge, rend.pixel_mm,
-        num_matches=num_matches, crop_size=H, subpixel=subpixel, block=block)
-
-    crop_K = jnp.asarray(crop_K, jnp.float32)
-    T_cam_world = jnp.asarray(T_cam_world, jnp.float32)
-
-    def pnp(p3, p2, wts, init):
-        return solve_pnp(p3, p2, crop_K, T_cam_world, wts, init, huber_px=huber_px,
-                         tukey_px=tukey_px, max_iterations=pnp_iterations)
-
-    refined, info = jax.vmap(pnp)(matches.points_3d, matches.points_2d, matches.weights,
-                                  hypotheses)
-    # solve_pnp returns the initial pose when it cannot solve; a pose that left the front of
-    # every camera is no refinement either.
-    c = transform(T_cam_world[None], transform(refined, mesh.center[None])[:, None])  # [K,V,1,3]
-    in_front = jnp.any(c[..., 0, 2] > 0, axis=1)
-    refined = jnp.where(in_front[:, None, None], refined, hypotheses)
-    return RefineResult(
-        hypotheses=refined,
-        scores=out["scores"][0],
-        mask_logits=mask_logits,
-        view_scores=out["view_scores"][0],
-        matches=matches,
-        pnp=info,
-    )
-
+                             output_size=output_size, ambient=settings.ambient)
+    out = jax.tree.map(lambda x: x[0], network(crops[None], rend.rgb[None]))
+    return update_hypotheses(out, rend, mesh, crop_K, T_cam_world, hypotheses, settings)

@@ -1,0 +1,225 @@
+"""Periodic evaluation of 3PT-R on objects training never saw.
+
+The first ``eval.num_examples`` records of ``eval.data_dir`` (``""``: the val split of
+``config.data_dir``), split ``eval.split``, cut as training cuts them (one instance per image,
+``data.num_hypotheses`` perturbed poses, a fixed seed), each run through the refinement step
+as inference runs it: renders, network, reciprocal matches, multi-view PnP
+(:func:`~threept_jax.pipeline.refinement.update_hypotheses`), iterated ``eval.num_steps``
+times on the same crops. Every pose of every hypothesis is scored against the ground truth.
+Metrics (all over valid instances; medians and shares over instances x hypotheses):
+
+* ``eval/match_within_2px``: share of the step's reciprocal edge matches (weight 1, first
+  step) whose real pixel (crop frame) lies within 2 crop pixels of the projection of the
+  match's 3D point by the ground-truth pose; ``eval/matches_per_pair``.
+* ``eval/rot_deg_{before,after_1,after_N}``: median rotation error, symmetry-aware
+  (min over the object's symmetries, ``geometry.symmetry.symmetric_angle_deg``), in degrees;
+  ``eval/trans_mm_...``: median ``|t_est - t_gt|`` (mm); ``eval/ar_mssd_...``: BOP's MSSD
+  recall averaged over the thresholds 0.05, 0.10, ..., 0.50 of the diameter (MSSD over the
+  prepared mesh's face corners, :func:`threept_jax.losses.refiner.mssd_errors`), before
+  refinement, after 1 step and after N = ``eval.num_steps`` steps. ``eval/ar_mssd_after``
+  (the default best-checkpoint metric) is the last.
+* ``eval/ar_mssd_top_after``: the same for the one hypothesis per instance that the network's
+  score picks (what inference keeps), after N steps.
+* ``eval/score_acc``: how often the top-scored of the J hypotheses has the lowest MSSD after
+  one step (chance: 1 / J).
+* ``eval/mask_iou``, ``eval/matching_loss``, ``eval/matching_within_2px_map`` (the dense
+  argmax of the matching loss, in map pixels: a diagnostic), ``eval/classification_loss``.
+* ``eval/num_instances``; ``eval/unseen_share``: share of the evaluated instances whose mesh
+  (by content) is not among the objects of the training split (:func:`training_digests`),
+  1.0 for a truly held-out set.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import pathlib
+from collections.abc import Mapping
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+from flax import nnx
+
+from threept_jax.data.refiner_input import RefinerMeshes, load_mesh_paths, refiner_dataset
+from threept_jax.geometry.symmetry import symmetric_angle_deg
+from threept_jax.losses.refiner import WITHIN_PX
+from train import sharding
+from train.refiner_objective import (
+    STEP_FIELDS,
+    RefinerAssets,
+    gt_cam_obj,
+    objective,
+    pose_errors,
+    refine_batch,
+    render_batch,
+)
+from train.run_config import loss_config, model_config, refine_settings, refiner_example_config
+
+#: BOP's MSSD thresholds, as fractions of the object diameter.
+MSSD_THRESHOLDS = np.arange(0.05, 0.51, 0.05)
+
+
+def mesh_digests(records_dir) -> dict[int, str]:
+    """{obj_id: sha256 of the mesh file} of a records folder's objects."""
+    return {k: hashlib.sha256(pathlib.Path(p).read_bytes()).hexdigest()
+            for k, p in load_mesh_paths(records_dir).items()}
+
+
+def training_digests(records_dir) -> set[str]:
+    """Mesh digests of the objects the train split uses: those its ``index.json`` sources
+    list (``datagen.pack`` writes them), or every object of the table without one."""
+    digests = mesh_digests(records_dir)
+    index = pathlib.Path(records_dir) / "train" / "index.json"
+    if not index.exists():
+        return set(digests.values())
+    ids = {int(v) for src in json.loads(index.read_text()).get("sources", [])
+           for v in src.get("obj_ids", {}).values()}
+    return {digests[i] for i in ids if i in digests}
+
+
+def average_recall(errors: np.ndarray, diameters: np.ndarray) -> float:
+    """BOP's AR of an error [N] (mm) against diameters [N]: mean over :data:`MSSD_THRESHOLDS`
+    of the share under ``threshold * diameter`` (0 for N = 0)."""
+    if errors.size == 0:
+        return 0.0
+    e = np.where(np.isfinite(errors), errors, np.inf)
+    return float(np.mean(e[None] < MSSD_THRESHOLDS[:, None] * diameters[None]))
+
+
+def match_accuracy(matches, crop_K: jax.Array, T_cam_obj_gt: jax.Array):
+    """(within [B], total [B]): weighted matches within 2 crop pixels of the ground truth.
+
+    matches: :class:`~threept_jax.pipeline.refinement.Matches` with leading [B, J, V];
+    crop_K [B, V, 3, 3]; T_cam_obj_gt [B, V, 4, 4].
+    """
+    X = matches.points_3d  # [B, J, V, N, 3]
+    R, t = T_cam_obj_gt[:, None, :, None, :3, :3], T_cam_obj_gt[:, None, :, None, :3, 3]
+    p = jnp.einsum("bjvnik,bjvnk->bjvni", jnp.broadcast_to(R, X.shape[:-1] + (3, 3)), X) + t
+    uvw = jnp.einsum("bvik,bjvnk->bjvni", crop_K, p)
+    uv = uvw[..., :2] / jnp.where(uvw[..., 2:] > 0, uvw[..., 2:], 1.0)
+    ok = (jnp.sum(jnp.square(uv - matches.points_2d), -1) <= WITHIN_PX**2) & (uvw[..., 2] > 0)
+    w = matches.weights > 0
+    return (jnp.sum(ok & w, axis=(1, 2, 3)).astype(jnp.float32),
+            jnp.sum(w, axis=(1, 2, 3)).astype(jnp.float32))
+
+
+class RefinerEvaluator:
+    """``evaluator(params) -> {"eval/...": float}`` (module docstring)."""
+
+    def __init__(self, config: ml_collections.ConfigDict, graphdef: nnx.GraphDef,
+                 mesh: jax.sharding.Mesh):
+        c, e = config, config.eval
+        self.mesh = mesh
+        self.data_dir = e.data_dir or c.data_dir
+        meshes = RefinerMeshes.from_records(self.data_dir, max_faces=c.refine.max_faces)
+        self.assets = jax.device_put(RefinerAssets.from_meshes(meshes),
+                                     sharding.replicated(mesh))
+        train_digests = training_digests(c.data_dir)
+        self.unseen = {k: d not in train_digests for k, d in mesh_digests(self.data_dir).items()}
+        ds = refiner_dataset(self.data_dir, e.split, refiner_example_config(c), seed=e.seed,
+                             batch_size=None, shuffle=False, repeat=False)
+        n = min(len(ds), int(e.num_examples))
+        if n == 0:
+            raise ValueError(f"eval: {self.data_dir}/{e.split} holds no records; set "
+                             "--config.eval.data_dir to a records folder of held-out objects")
+        self.examples = [ds[i] for i in range(n)]
+        self.batch_size = int(e.batch_size)
+        self.num_steps = int(e.num_steps)
+        self.fn = self._build(graphdef, model_config(c), loss_config(c), refine_settings(c))
+
+    def _build(self, graphdef, model_cfg, loss_cfg, settings):
+        num_steps = self.num_steps
+
+        def run(params, batch, assets):
+            model = nnx.merge(graphdef, params)
+            sizes = dict(crop_size=model_cfg.crop_size, output_size=model_cfg.output_size,
+                         ambient=settings.ambient)
+            rend = render_batch(assets, batch, **sizes)
+            out = model(batch["crops"], rend.rgb)
+            _, metrics, step = objective(out, rend, assets, batch, loss_cfg, settings)
+            within, total = match_accuracy(step.matches, batch["crop_K"].astype(jnp.float32),
+                                           gt_cam_obj(batch))
+            poses = batch["hypotheses"].astype(jnp.float32)
+            after_1 = h = step.hypotheses
+            for _ in range(num_steps - 1):
+                r = render_batch(assets, batch, hypotheses=h, **sizes)
+                h = refine_batch(model(batch["crops"], r.rgb), r, assets, batch, h,
+                                 settings).hypotheses
+            return {
+                "poses": jnp.stack([poses, after_1, h], 1),  # [B, 3, J, 4, 4]
+                "mssd": jnp.stack([pose_errors(assets, batch, x) for x in (poses, after_1, h)],
+                                  1),
+                "scores": out["scores"], "within": within, "total": total,
+                "num_pairs": jnp.full(within.shape, np.prod(rend.mask.shape[1:3]), jnp.float32),
+                **{k: jnp.full(within.shape, v) for k, v in metrics.items()},
+            }
+
+        rep = sharding.replicated(self.mesh)
+        return jax.jit(run, in_shardings=(None, sharding.batch_sharding(self.mesh), rep),
+                       out_shardings=rep)
+
+    def _batches(self):
+        b = self.batch_size
+        for start in range(0, len(self.examples), b):
+            chunk = self.examples[start:start + b]
+            pad = b - len(chunk)
+            # The last batch is padded with invalid copies (left out of every metric).
+            chunk = chunk + [{**chunk[0], "valid": np.bool_(False)}] * pad
+            yield {k: np.stack([ex[k] for ex in chunk]) for k in chunk[0]}, len(chunk) - pad
+
+    def __call__(self, params) -> dict[str, float]:
+        rows: dict[str, list[np.ndarray]] = {}
+        for host, n in self._batches():
+            batch = sharding.global_batch({k: host[k] for k in STEP_FIELDS}, self.mesh)
+            out = jax.device_get(self.fn(params, batch, self.assets))
+            out = {k: np.asarray(v)[:n] for k, v in out.items()}
+            for k in ("T_world_obj_gt", "diameter", "symmetries", "symmetry_mask", "valid",
+                      "obj_id"):
+                out[k] = host[k][:n]
+            for k, v in out.items():
+                rows.setdefault(k, []).append(v)
+        r = {k: np.concatenate(v) for k, v in rows.items()}
+        return summarize(r, num_steps=self.num_steps, unseen=self.unseen)
+
+
+def summarize(r: Mapping[str, np.ndarray], *, num_steps: int,
+              unseen: Mapping[int, bool]) -> dict[str, float]:
+    """The ``eval/...`` metrics (module docstring) from per-instance arrays."""
+    keep = r["valid"].astype(bool)
+    out = {"eval/num_instances": float(keep.sum())}
+    if not keep.any():
+        return out
+    poses, mssd = r["poses"][keep], r["mssd"][keep].astype(np.float64)  # [N, 3, J, ...]
+    gt, diam = r["T_world_obj_gt"][keep].astype(np.float64), r["diameter"][keep]
+    n, _, J = mssd.shape
+    labels = ("before", "after_1", f"after_{num_steps}")
+    for s, label in enumerate(labels):
+        rot = np.concatenate([
+            symmetric_angle_deg(poses[i, s, :, :3, :3], np.repeat(gt[i][None, :3, :3], J, 0),
+                                r["symmetries"][keep][i][r["symmetry_mask"][keep][i]])
+            for i in range(n)])
+        trans = np.linalg.norm(poses[:, s, :, :3, 3] - gt[:, None, :3, 3], axis=-1).ravel()
+        out[f"eval/rot_deg_{label}"] = float(np.median(rot))
+        out[f"eval/trans_mm_{label}"] = float(np.median(trans))
+        out[f"eval/ar_mssd_{label}"] = average_recall(mssd[:, s].ravel(),
+                                                      np.repeat(diam, J).astype(np.float64))
+    out["eval/ar_mssd_after"] = out[f"eval/ar_mssd_{labels[-1]}"]
+    top = np.argmax(r["scores"][keep], axis=1)
+    out["eval/ar_mssd_top_after"] = average_recall(mssd[np.arange(n), -1, top], diam)
+    after_1 = np.where(np.isfinite(mssd[:, 1]), mssd[:, 1], np.inf)
+    out["eval/score_acc"] = float(np.mean(top == np.argmin(after_1, axis=1)))
+    out["eval/match_within_2px"] = float(r["within"][keep].sum()
+                                         / max(r["total"][keep].sum(), 1.0))
+    out["eval/matches_per_pair"] = float(r["total"][keep].sum() / r["num_pairs"][keep].sum())
+    # The objective's batch means, copied to every row: the mean over valid rows weights each
+    # batch by its valid instances.
+    for src, name in (("matching/loss", "matching_loss"),
+                      ("matching/within_2px", "matching_within_2px_map"),
+                      ("classification/loss", "classification_loss"),
+                      ("segmentation/iou", "mask_iou")):
+        out[f"eval/{name}"] = float(np.mean(r[src][keep]))
+    out["eval/unseen_share"] = float(np.mean([unseen.get(int(o), False)
+                                              for o in r["obj_id"][keep]]))
+    return out
