@@ -65,13 +65,11 @@ from train import sharding  # noqa: E402
 from train.configs import refiner as refiner_configs  # noqa: E402
 from train.refiner_objective import RefinerAssets, render_batch  # noqa: E402
 from train.run_config import (  # noqa: E402
-    loss_config,
     model_config,
     refine_settings,
     refiner_example_config,
 )
-from train.trainer import make_optimizer  # noqa: E402
-from train.trainer_refiner import build_step, make_train_step  # noqa: E402
+from train.trainer_refiner import build_step  # noqa: E402
 
 MODELS = ROOT.parent / "shared" / "meshes" / "bop" / "tless" / "models"
 OBJ_IDS = (4, 5, 6, 7)
@@ -179,20 +177,13 @@ def bench_variant(variant: str, steps: int, batch_override: int | None) -> dict:
                            "empty: the synthetic poses do not put the object in its crop")
     coverage = float(pixels.mean()) / model_cfg.output_size**2
 
-    # The trainer's step: build_step's state and shardings, and the same jit as
-    # train.trainer.compile_step, kept here so that it can be lowered and compiled ahead of
-    # time (CompiledStep.step binds the assets in a plain function).
+    # The trainer's own jitted step (train.trainer.compile_step), compiled ahead of time.
     built = build_step(config, assets, mesh)
-    tx, schedule = make_optimizer(config.optim.to_dict(), int(config.total_steps))
-    step_fn = make_train_step(built.graphdef, tx, schedule, model_cfg, loss_config(config),
-                              settings)
-    jitted = jax.jit(step_fn, in_shardings=(built.state_shardings,
-                                            sharding.batch_sharding(mesh), replicated),
-                     out_shardings=(built.state_shardings, replicated), donate_argnums=0)
+    placed = built.assets
     state = built.init()
     jax.block_until_ready(state)
     t0 = time.perf_counter()
-    compiled = jitted.lower(state, device_batch, placed).compile()
+    compiled = built.jitted.lower(state, device_batch, placed).compile()
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     state, metrics = compiled(state, device_batch, placed)

@@ -97,7 +97,12 @@ def init_state(make_model: Callable[[], nnx.Module], tx: optax.GradientTransform
 
 @dataclasses.dataclass
 class CompiledStep:
-    """A jitted ``step(state, batch) -> (state, metrics)`` and what it needs."""
+    """A jitted ``step(state, batch) -> (state, metrics)`` and what it needs.
+
+    ``jitted`` is the ``jax.jit`` object itself (``jitted(state, batch)``, or
+    ``jitted(state, batch, assets)`` with the placed ``assets`` when the step reads some), for
+    ahead-of-time ``lower(...).compile()`` in benchmarks; ``step`` binds the assets.
+    """
 
     graphdef: nnx.GraphDef
     abstract_state: Any
@@ -106,6 +111,8 @@ class CompiledStep:
     step: Callable[[Any, Any], Any]
     schedule: optax.Schedule
     trace_counter: list[int]
+    jitted: Any = None
+    assets: Any = None
 
 
 def compile_step(make_model: Callable[[], nnx.Module], step_fn: Callable, tx, schedule,
@@ -126,12 +133,13 @@ def compile_step(make_model: Callable[[], nnx.Module], step_fn: Callable, tx, sc
         in_shardings += (sharding.replicated(mesh),)
     jitted = jax.jit(step_fn, in_shardings=in_shardings,
                      out_shardings=(shardings, sharding.replicated(mesh)), donate_argnums=0)
-    step = jitted
+    step, placed = jitted, None
     if assets is not None:
         placed = jax.device_put(assets, sharding.replicated(mesh))
         step = lambda state, batch: jitted(state, batch, placed)  # noqa: E731
     return CompiledStep(graphdef, abstract_state, shardings,
-                        jax.jit(init, out_shardings=shardings), step, schedule, counter)
+                        jax.jit(init, out_shardings=shardings), step, schedule, counter,
+                        jitted=jitted, assets=placed)
 
 
 class StepCache:

@@ -68,8 +68,11 @@ def _unit_range(images: Array) -> Array:
 
 
 def _normalize(x: Array, eps: float = 1e-6) -> Array:
+    """x / max(|x|, eps) along the last axis, float32. Through the squared norm (rsqrt), so
+    the gradient stays finite at x = 0 (``jnp.linalg.norm``'s is NaN there, and a zero
+    descriptor occurs: zero features under a zero-initialised head bias)."""
     x = x.astype(jnp.float32)
-    return x / jnp.maximum(jnp.linalg.norm(x, axis=-1, keepdims=True), eps)
+    return x * jax.lax.rsqrt(jnp.maximum(jnp.sum(x * x, axis=-1, keepdims=True), eps * eps))
 
 
 class Refiner(nnx.Module):
