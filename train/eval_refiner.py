@@ -43,6 +43,7 @@ import numpy as np
 from flax import nnx
 
 from threept_jax.data.refiner_input import RefinerMeshes, load_mesh_paths, refiner_dataset
+from threept_jax.eval.bop6d import MSSD_THRESHOLDS
 from threept_jax.geometry.symmetry import symmetric_angle_deg
 from threept_jax.losses.refiner import WITHIN_PX
 from train import sharding
@@ -56,9 +57,6 @@ from train.refiner_objective import (
     render_batch,
 )
 from train.run_config import loss_config, model_config, refine_settings, refiner_example_config
-
-#: BOP's MSSD thresholds, as fractions of the object diameter.
-MSSD_THRESHOLDS = np.arange(0.05, 0.51, 0.05)
 
 
 def mesh_digests(records_dir) -> dict[int, str]:
@@ -80,8 +78,9 @@ def training_digests(records_dir) -> set[str]:
 
 
 def average_recall(errors: np.ndarray, diameters: np.ndarray) -> float:
-    """BOP's AR of an error [N] (mm) against diameters [N]: mean over :data:`MSSD_THRESHOLDS`
-    of the share under ``threshold * diameter`` (0 for N = 0)."""
+    """BOP's AR of an error [N] (mm) against diameters [N]: mean over BOP's
+    ``MSSD_THRESHOLDS`` (``threept_jax.eval.bop6d``, fractions of the diameter) of the share
+    under ``threshold * diameter`` (0 for N = 0)."""
     if errors.size == 0:
         return 0.0
     e = np.where(np.isfinite(errors), errors, np.inf)
