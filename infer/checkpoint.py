@@ -1,8 +1,8 @@
-"""Load a trained 3PT-D from a training workdir for inference.
+"""Load a trained 3PT-D or 3PT-R from a training workdir for inference.
 
-The workdir's format (``detector.json``, ``config.json``, Orbax steps under ``checkpoints/``
-with the train state in the ``state`` item, the best step) is defined by
-:mod:`threept_jax.data.run_dir`, which the trainer writes through. Inference restores the
+The workdir's format (``detector.json`` or ``refiner.json``, ``config.json``, Orbax steps under
+``checkpoints/`` with the train state in the ``state`` item, the best step) is defined by
+:mod:`threept_jax.data.run_dir`, which the trainers write through. Inference restores the
 parameters alone, on the default device, without the optimizer state or the data iterator.
 """
 
@@ -12,8 +12,10 @@ import jax
 from flax import nnx
 
 from threept_jax.data.run_dir import RunDir
-from threept_jax.models.configs import DetectorConfig
+from threept_jax.models.configs import DetectorConfig, RefinerConfig
 from threept_jax.models.detector import Detector
+from threept_jax.models.refiner import Refiner
+from threept_jax.pipeline.refinement import RefineSettings
 
 
 def saved_metrics(workdir, step: int) -> dict[str, float]:
@@ -33,15 +35,30 @@ def load_detector(workdir, step: int | str = "best", dtype: str | None = None
 
     Returns (model, config, step).
     """
-    run = RunDir(workdir)
+    return _load(RunDir(workdir), Detector, step, dtype)
+
+
+def load_refiner(workdir, step: int | str = "best", dtype: str | None = None
+                 ) -> tuple[Refiner, RefinerConfig, int, RefineSettings]:
+    """Refiner with trained parameters from a refiner ``workdir`` (``train/configs/refiner.py``).
+
+    ``step`` and ``dtype`` as :func:`load_detector` (``"best"``: held-out MSSD recall after
+    refinement by default). Returns (model, config, step, the run's ``RefineSettings``: the
+    refinement step is run at inference with the options it was trained with).
+    """
+    run = RunDir(workdir, model="refiner")
+    model, cfg, step = _load(run, Refiner, step, dtype)
+    refine = run.read_config().get("refine", {})
+    return model, cfg, step, RefineSettings(**refine)
+
+
+def _load(run: RunDir, cls, step, dtype):
     cfg = run.read_model_config(dtype)
     step = run.resolve_step(step)
-
-    abstract = nnx.eval_shape(lambda: Detector(cfg, rngs=nnx.Rngs(0)))
+    abstract = nnx.eval_shape(lambda: cls(cfg, rngs=nnx.Rngs(0)))
     graphdef, abstract_params = nnx.split(abstract, nnx.Param)
     device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
     target = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device),
                           nnx.to_pure_dict(abstract_params))
     nnx.replace_by_pure_dict(abstract_params, run.restore_params(step, target))
-    model = nnx.merge(graphdef, abstract_params)
-    return model, cfg, step
+    return nnx.merge(graphdef, abstract_params), cfg, step

@@ -18,8 +18,9 @@ Metrics (all over valid instances; medians and shares over instances x hypothese
   prepared mesh's face corners, :func:`threept_jax.losses.refiner.mssd_errors`), before
   refinement, after 1 step and after N = ``eval.num_steps`` steps. ``eval/ar_mssd_after``
   (the default best-checkpoint metric) is the last.
-* ``eval/ar_mssd_top_after``: the same for the one hypothesis per instance that the network's
-  score picks (what inference keeps), after N steps.
+* ``eval/ar_mssd_top_before`` / ``eval/ar_mssd_top_after``: the same for the one hypothesis
+  per instance that the network's score picks (what inference keeps), before refinement (the
+  gain of selection alone) and after N steps.
 * ``eval/score_acc``: how often the top-scored of the J hypotheses has the lowest MSSD after
   one step (chance: 1 / J).
 * ``eval/mask_iou``, ``eval/matching_loss``, ``eval/matching_within_2px_map`` (the dense
@@ -206,6 +207,7 @@ def summarize(r: Mapping[str, np.ndarray], *, num_steps: int,
                                                       np.repeat(diam, J).astype(np.float64))
     out["eval/ar_mssd_after"] = out[f"eval/ar_mssd_{labels[-1]}"]
     top = np.argmax(r["scores"][keep], axis=1)
+    out["eval/ar_mssd_top_before"] = average_recall(mssd[np.arange(n), 0, top], diam)
     out["eval/ar_mssd_top_after"] = average_recall(mssd[np.arange(n), -1, top], diam)
     after_1 = np.where(np.isfinite(mssd[:, 1]), mssd[:, 1], np.inf)
     out["eval/score_acc"] = float(np.mean(top == np.argmin(after_1, axis=1)))

@@ -85,6 +85,8 @@ def test_summary_medians_recall_and_score_accuracy_by_hand():
     # Top scores: instance 0 picks hypothesis 0 (the best: correct), instance 1 picks 1 (not).
     assert out["eval/score_acc"] == 0.5
     assert np.isclose(out["eval/ar_mssd_top_after"], (10 + 9) / 20)
+    # Before refinement the picks are MSSD 30 (4 of 10) and 60 (0 of 10).
+    assert np.isclose(out["eval/ar_mssd_top_before"], 4 / 20)
     assert out["eval/match_within_2px"] == 0.5
     assert out["eval/matches_per_pair"] == 2.0
     assert out["eval/unseen_share"] == 0.5

@@ -12,6 +12,7 @@ import pytest
 from fixtures.refiner_records import write_refiner_records
 from fixtures.training import ROOT, SUBPROCESS_ENV
 
+from infer.checkpoint import load_refiner
 from threept_jax.data.run_dir import RunDir
 from threept_jax.models.configs import REFINER_SIZES, RefinerConfig
 from train import run_config
@@ -155,6 +156,12 @@ def test_launcher_trains_the_refiner_and_refuses_a_detector_key(records, tmp_pat
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert RunDir(tmp_path / "w", model="refiner").checkpoint_steps() == [1]
     assert json.loads((tmp_path / "w" / "refiner.json").read_text())["variant"] == "tiny/16"
+    # Inference loads it with the step options it was trained with.
+    model, cfg, step, settings = load_refiner(tmp_path / "w")
+    assert step == 1 and cfg.variant == "tiny/16"
+    assert settings.num_matches == 16 and settings.max_faces == 256
+    out = model(np.zeros((1, 1, 64, 64, 3), np.uint8), np.zeros((1, 2, 1, 64, 64, 3), np.uint8))
+    assert out["scores"].shape == (1, 2)
 
     bad = subprocess.run(base + ["--workdir", str(tmp_path / "bad"), "--config.data.max_instances=3"],
                          env=SUBPROCESS_ENV, capture_output=True, text=True, timeout=120)
