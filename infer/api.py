@@ -1,10 +1,15 @@
 """The public inference API: load the models once, then ``run_scene`` on any number of scenes.
 
     import infer
-    models = infer.load("runs/demo/train")                 # a training run directory
+    models = infer.load("runs/demo/train", refiner="runs/refiner")  # training run directories
     objects = models.onboard({1: "bracket.ply"}, units="mm")  # cached on disk per mesh
     for image, K in camera_stream:
         instances = infer.run_scene([image], [K], objects, models)
+
+With a refiner (``refiner=``, a 3PT-R training run), ``run_scene`` refines every instance by
+render-and-compare (:class:`infer.refine.SceneRefiner`) and its masks come from the refiner;
+``refine`` refines poses from any other method without the detector
+(``infer.load(refiner="runs/refiner")``).
 
 ``run_scene`` takes one view or several (then each camera is a ``Camera`` with ``T_cam_world``)
 and returns :class:`infer.scene.Instance` records (object id, pose ``T_world_obj``, score,
@@ -24,42 +29,67 @@ from typing import Any
 
 import numpy as np
 
-from infer.checkpoint import load_detector
+from infer.checkpoint import load_detector, load_refiner
 from infer.detect import SceneDetector
 from infer.masks import PoseRenderer
 from infer.onboarding import ONBOARD_TEMPLATES, OnboardedObject, Onboarder
-from infer.scene import Instances, find_instances
+from infer.refine import RefinedPose, SceneRefiner, refine_objects
+from infer.scene import Instances, assign_pixels, find_instances
 from threept_jax.data.bop import Camera
 from threept_jax.geometry.validate import validate_intrinsics
-from threept_jax.models.configs import DetectorConfig
+from threept_jax.models.configs import DetectorConfig, RefinerConfig
 from threept_jax.models.detector import Detector
+from threept_jax.models.refiner import Refiner
+from threept_jax.pipeline.refinement import RefineSettings
 from threept_jax.render import Mesh
 
 DEFAULT_CACHE = pathlib.Path(os.environ.get("THREEPT_CACHE", "~/.cache/threept_jax")).expanduser()
 
-__all__ = ["Camera", "Models", "load", "run_scene", "DEFAULT_CACHE"]
+__all__ = ["Camera", "Models", "load", "run_scene", "refine", "DEFAULT_CACHE"]
 
 
 @dataclasses.dataclass
 class Models:
-    """The trained networks of a run, loaded once, and what is built from them per object set.
+    """The trained networks, loaded once, and what is built from them per object set.
 
     Attributes:
-      detector: the 3PT-D network; config: its ``DetectorConfig``; step: the checkpoint step.
+      detector: the 3PT-D network (None when only a refiner was loaded); config: its
+        ``DetectorConfig``; step: its checkpoint step.
       onboarder: turns meshes into :class:`OnboardedObject` (cached on disk under the model).
+      refiner: the 3PT-R network (None without one), with ``refiner_config``,
+        ``refiner_step`` and ``refine_settings`` (the options it was trained with).
     """
 
-    detector: Detector
-    config: DetectorConfig
-    step: int
-    onboarder: Onboarder
+    detector: Detector | None
+    config: DetectorConfig | None
+    step: int | None
+    onboarder: Onboarder | None
+    refiner: Refiner | None = None
+    refiner_config: RefinerConfig | None = None
+    refiner_step: int | None = None
+    refine_settings: RefineSettings | None = None
     _scene_detectors: dict = dataclasses.field(default_factory=dict, repr=False)
     _pose_renderers: dict = dataclasses.field(default_factory=dict, repr=False)
+    _scene_refiners: dict = dataclasses.field(default_factory=dict, repr=False)
 
     def onboard(self, meshes: Mapping[int, str | os.PathLike | Mesh], units: str = "mm"
                 ) -> list[OnboardedObject]:
         """Onboard ``{obj_id: mesh file or Mesh}`` (mesh units checked on load)."""
+        if self.onboarder is None:
+            raise ValueError("onboarding needs a detector: infer.load(DETECTOR_RUN, ...)")
         return self.onboarder.onboard_all(dict(meshes), units=units)
+
+    def scene_refiner(self, objects: Sequence) -> SceneRefiner:
+        """The :class:`SceneRefiner` of these objects, built once (meshes prepared once, its
+        compiled loop kept across calls)."""
+        if self.refiner is None:
+            raise ValueError("no refiner loaded: pass refiner=<a 3PT-R training run> to "
+                             "infer.load")
+        key = tuple(o.obj_id for o in objects)
+        if key not in self._scene_refiners:
+            self._scene_refiners[key] = SceneRefiner(self.refiner, self.refiner_config,
+                                                     self.refine_settings, objects)
+        return self._scene_refiners[key]
 
     def scene_detector(self, objects: Sequence[OnboardedObject], **options: Any) -> SceneDetector:
         """The :class:`SceneDetector` of these objects and options, built once and reused, so
@@ -80,15 +110,26 @@ class Models:
         return self._pose_renderers[key]
 
 
-def load(workdir, step: int | str = "best", *, cache_dir=DEFAULT_CACHE,
+def load(workdir=None, step: int | str = "best", *, refiner=None,
+         refiner_step: int | str = "best", cache_dir=DEFAULT_CACHE,
          num_templates: int = ONBOARD_TEMPLATES) -> Models:
-    """Load a training run's detector (``step``: ``"best"``, ``"latest"`` or a number) and an
-    onboarder whose cache lives under ``cache_dir/onboarding`` (None: no disk cache)."""
-    model, cfg, step = load_detector(workdir, step)
-    model_id = f"{pathlib.Path(workdir).resolve()}@{step}"
-    cache = None if cache_dir is None else pathlib.Path(cache_dir) / "onboarding"
-    return Models(model, cfg, step, Onboarder(model, cfg, model_id, cache_dir=cache,
-                                              num_templates=num_templates))
+    """Load a detector training run (``step``: ``"best"``, ``"latest"`` or a number) with an
+    onboarder whose cache lives under ``cache_dir/onboarding`` (None: no disk cache), and/or a
+    refiner training run (``refiner``, ``refiner_step``). At least one of the two."""
+    if workdir is None and refiner is None:
+        raise ValueError("infer.load needs a detector run (workdir) or a refiner run (refiner=)")
+    models = Models(None, None, None, None)
+    if workdir is not None:
+        model, cfg, step = load_detector(workdir, step)
+        model_id = f"{pathlib.Path(workdir).resolve()}@{step}"
+        cache = None if cache_dir is None else pathlib.Path(cache_dir) / "onboarding"
+        models = Models(model, cfg, step, Onboarder(model, cfg, model_id, cache_dir=cache,
+                                                    num_templates=num_templates))
+    if refiner is not None:
+        net, rcfg, rstep, settings = load_refiner(refiner, refiner_step)
+        models = dataclasses.replace(models, refiner=net, refiner_config=rcfg,
+                                     refiner_step=rstep, refine_settings=settings)
+    return models
 
 
 def prepare_views(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarray]
@@ -114,7 +155,7 @@ def prepare_views(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.nd
 def run_scene(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarray],
               objects: Sequence[OnboardedObject] | Mapping[int, str | os.PathLike | Mesh],
               models: Models, *, units: str = "mm", with_masks: bool = True,
-              min_views: int = 3, **detector_options: Any) -> Instances:
+              min_views: int = 3, refine: bool = True, **detector_options: Any) -> Instances:
     """Every instance of the objects in a scene seen by one or several calibrated RGB views.
 
     Args:
@@ -124,7 +165,9 @@ def run_scene(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarra
         several views ``T_cam_world`` [4, 4], world -> camera, mm), or a bare K.
       objects: onboarded objects, or ``{obj_id: mesh}`` to onboard (``units`` of the meshes).
       models: from :func:`load`.
-      with_masks, min_views: see :func:`infer.scene.find_instances`.
+      with_masks, min_views: see :func:`infer.scene.find_instances`; with a refiner the masks
+        are the refiner's (each pixel to the best-scored instance claiming it).
+      refine: refine every instance with the loaded refiner (when ``models`` has one).
       detector_options: :class:`SceneDetector` options: ``depth_range`` (zmin, zmax) in mm,
         the objects' distance from the camera when known (pan-and-scan then uses the fewest
         scales that put their projected diameters into the trained size range), ``num_scales``,
@@ -137,7 +180,47 @@ def run_scene(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarra
     if isinstance(objects, Mapping):
         objects = models.onboard(objects, units=units)
     objects = list(objects)
+    if models.detector is None:
+        raise ValueError("run_scene needs a detector: infer.load(DETECTOR_RUN, ...); to refine "
+                         "poses from another method use infer.refine")
     detector = models.scene_detector(objects, **detector_options)
-    renderer = models.pose_renderer(objects) if with_masks else None
-    return find_instances(detector, images, Ks, T_cam_world, with_masks=with_masks,
-                          min_views=min_views, renderer=renderer)
+    refining = refine and models.refiner is not None
+    renderer = models.pose_renderer(objects) if with_masks and not refining else None
+    instances = find_instances(detector, images, Ks, T_cam_world,
+                               with_masks=with_masks and not refining, min_views=min_views,
+                               renderer=renderer)
+    if not refining or not instances:
+        return instances
+    refined = models.scene_refiner(objects)(
+        images, np.stack(Ks), T_cam_world, [x.obj_id for x in instances],
+        [x.hypotheses for x in instances])
+    out = [dataclasses.replace(x, T_world_obj=r.T_world_obj, T_world_obj_initial=x.T_world_obj,
+                               refine_score=r.score,
+                               masks=r.masks if with_masks else {})
+           for x, r in zip(instances, refined)]
+    if with_masks:
+        assign_pixels(out)
+    return Instances(out, instances.best_score)
+
+
+def refine(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarray],
+           objects: Sequence | Mapping[int, str | os.PathLike | Mesh],
+           initial_poses: Sequence[tuple[int, np.ndarray]], models: Models, *,
+           units: str = "mm") -> list[RefinedPose]:
+    """Refine poses from any method by 3PT-R render-and-compare, without the detector.
+
+    Args:
+      images, cameras: as :func:`run_scene` (one view, or several with ``T_cam_world``).
+      objects: ``{obj_id: mesh file or Mesh}`` (``units``), or onboarded / refine objects.
+      initial_poses: ``(obj_id, T_world_obj)`` per instance, ``T_world_obj`` [4, 4] or a set of
+        hypotheses [K, 4, 4] best first (world frame; the camera frame for one view), mm.
+      models: from :func:`load` with ``refiner=``.
+
+    Returns one :class:`infer.refine.RefinedPose` per instance, in the input order.
+    """
+    Ks, T_cam_world = prepare_views(images, cameras)
+    if isinstance(objects, Mapping):
+        objects = refine_objects(objects, units=units)
+    refiner = models.scene_refiner(list(objects))
+    return refiner(images, np.stack(Ks), T_cam_world, [int(o) for o, _ in initial_poses],
+                   [np.asarray(p) for _, p in initial_poses])

@@ -13,7 +13,8 @@ template grid), become the instance's hypotheses, the translation puts the
 object's bounding-sphere centre at the triangulated point.
 
 Masks are the silhouettes of the best pose rendered in each view, each pixel going to the
-highest-scoring instance that covers it (no learned segmentation before the refiner lands).
+highest-scoring instance that covers it; with a refiner (``infer.run_scene``) they are the
+refiner's learned visible masks instead, assigned the same way (:func:`assign_pixels`).
 """
 
 from __future__ import annotations
@@ -48,7 +49,10 @@ class Instance:
       hypotheses: [K, 4, 4] pose hypotheses (world frame), best first.
       hypothesis_scores: [K].
       boxes: {view index: [4] xyxy box}; views where the instance was detected.
-      masks: {view index: bool [H, W]} rendered silhouettes in every view (when requested).
+      masks: {view index: bool [H, W]} in every view (when requested): rendered silhouettes of
+        the pose, or the refiner's visible masks after refinement.
+      T_world_obj_initial: the pose before refinement (None when not refined).
+      refine_score: the refiner's score logit of the refined pose (None when not refined).
     """
 
     obj_id: int
@@ -58,6 +62,19 @@ class Instance:
     hypothesis_scores: np.ndarray
     boxes: dict
     masks: dict
+    T_world_obj_initial: np.ndarray | None = None
+    refine_score: float | None = None
+
+
+def assign_pixels(instances: Sequence[Instance]) -> None:
+    """Each pixel of each view to the first (best) instance whose mask claims it (in place)."""
+    taken: dict = {}
+    for x in instances:
+        for v, m in x.masks.items():
+            prev = taken.get(v)
+            m = m if prev is None else (m & ~prev)
+            x.masks[v] = m
+            taken[v] = m if prev is None else (prev | m)
 
 
 class Instances(list):

@@ -1,0 +1,116 @@
+"""Refinement in the public API with an untrained tiny refiner: plumbing, padding, no retrace.
+
+What refinement converges to is tested with the oracle network in
+tests/pipeline/test_refine_loop.py; here: ``infer.refine`` and ``run_scene`` with a refiner
+return one pose per instance in the input order, the pose before refinement is the given one,
+refiner masks are image-sized and disjoint across instances, instance counts in one bin share
+one compilation, and bad input gets a clear error.
+"""
+
+import numpy as np
+import pytest
+import trimesh
+from flax import nnx
+
+import infer
+from infer.refine import SceneRefiner, refine_objects
+from threept_jax.models.configs import get_refiner_config
+from threept_jax.models.refiner import Refiner
+from threept_jax.pipeline.refinement import RefineSettings
+from threept_jax.render import Mesh
+
+K = np.array([[120.0, 0, 63.5], [0, 120.0, 47.5], [0, 0, 1]])
+
+
+def _box_mesh(extents, name):
+    tm = trimesh.creation.box(extents)
+    return Mesh(np.asarray(tm.vertices, np.float32), np.asarray(tm.faces, np.int32), name=name)
+
+
+def _pose(x, y, z, angle_deg=0.0):
+    T = np.eye(4)
+    a = np.radians(angle_deg)
+    T[:3, :3] = [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+@pytest.fixture(scope="module")
+def refiner_models():
+    cfg = get_refiner_config("tiny")
+    settings = RefineSettings(num_matches=16, max_faces=256, subpixel=False)
+    model = Refiner(cfg, rngs=nnx.Rngs(0))
+    models = infer.Models(None, None, None, None, refiner=model, refiner_config=cfg,
+                          refiner_step=0, refine_settings=settings)
+    meshes = {1: _box_mesh((80, 40, 20), "plate"), 2: _box_mesh((30, 30, 90), "post")}
+    return models, meshes
+
+
+def test_refine_keeps_order_and_initial_poses_and_does_not_retrace_within_a_bin(refiner_models):
+    models, meshes = refiner_models
+    image = np.random.default_rng(0).integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    poses = [(1, _pose(-40, 0, 600, 10)), (2, _pose(30, 10, 700)), (1, _pose(10, -20, 650, 40))]
+    out = infer.refine([image], [K], meshes, poses, models)
+    assert [r.obj_id for r in out] == [1, 2, 1]
+    for r, (_, T) in zip(out, poses):
+        assert np.all(np.isfinite(r.T_world_obj)) and np.isfinite(r.score)
+        np.testing.assert_allclose(r.history[0], T, atol=1e-3)
+        np.testing.assert_allclose(r.T_world_obj[3], [0, 0, 0, 1])
+        R = r.T_world_obj[:3, :3]
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-4)
+        assert set(r.masks) == {0} and r.masks[0].shape == (96, 128)
+        assert r.masks[0].dtype == bool
+    refiner = models.scene_refiner(refine_objects(meshes))
+    assert refiner.traces == 1
+    # Four instances fall in the same bin as three: the compiled loop is reused.
+    infer.refine([image], [K], meshes, poses + [(2, _pose(0, 0, 800))], models)
+    assert refiner.traces == 1
+
+
+def test_run_scene_refines_every_instance_with_masks_from_the_refiner(refiner_models, tmp_path):
+    from infer.onboarding import Onboarder
+    from infer.scene import find_instances
+    from threept_jax.models.configs import DetectorConfig
+    from threept_jax.models.detector import Detector
+
+    models, meshes = refiner_models
+    cfg = DetectorConfig(variant="tiny/16", image_size=64, render_size=32)
+    det = Detector(cfg, rngs=nnx.Rngs(0))
+    onboarder = Onboarder(det, cfg, "untrained@0", cache_dir=tmp_path, num_templates=48)
+    both = infer.Models(det, cfg, 0, onboarder, refiner=models.refiner,
+                        refiner_config=models.refiner_config, refiner_step=0,
+                        refine_settings=models.refine_settings)
+    image = np.random.default_rng(1).integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    options = dict(num_scales=1, score_threshold=0.0, max_detections=3)
+    got = infer.run_scene([image], [K], meshes, both, **options)
+    plain = infer.run_scene([image], [K], meshes, both, refine=False, **options)
+    assert 0 < len(got) == len(plain)
+    for a, b in zip(got, plain):
+        assert a.obj_id == b.obj_id and a.refine_score is not None and b.refine_score is None
+        np.testing.assert_allclose(a.T_world_obj_initial, b.T_world_obj, atol=1e-4)
+        assert a.masks[0].shape == (96, 128)
+    # Each pixel belongs to at most one instance.
+    total = sum(x.masks[0].astype(int) for x in got)
+    assert total.max() <= 1
+    objects = both.onboard(meshes)
+    assert [x.obj_id for x in find_instances(both.scene_detector(objects, **options), [image],
+                                             [K], with_masks=False)] == [x.obj_id for x in got]
+
+
+def test_refine_errors_name_the_problem(refiner_models):
+    models, meshes = refiner_models
+    image = np.zeros((96, 128, 3), np.uint8)
+    with pytest.raises(KeyError, match=r"objects \[7\] are not in this refiner's object set"):
+        infer.refine([image], [K], meshes, [(7, _pose(0, 0, 500))], models)
+    with pytest.raises(ValueError, match="not finite"):
+        infer.refine([image], [K], meshes, [(1, np.full((4, 4), np.nan))], models)
+    with pytest.raises(ValueError, match="no refiner loaded"):
+        infer.refine([image], [K], meshes, [(1, _pose(0, 0, 500))],
+                     infer.Models(None, None, None, None))
+    with pytest.raises(ValueError, match="detector run .* or a refiner run"):
+        infer.load()
+    rig = [infer.Camera(K, T_cam_world=np.eye(4)), infer.Camera(K, T_cam_world=np.eye(4))]
+    with pytest.raises(ValueError, match="one size"):
+        infer.refine([image, np.zeros((64, 64, 3), np.uint8)], rig, meshes,
+                     [(1, _pose(0, 0, 500))], models)
+    assert isinstance(models.scene_refiner(refine_objects(meshes)), SceneRefiner)
