@@ -346,7 +346,8 @@ class RefineSettings:
 
 def update_hypotheses(outputs: dict, rend: Renders, mesh: RasterMesh, crop_K: Array,
                       T_cam_world: Array, hypotheses: Array,
-                      settings: RefineSettings = RefineSettings()) -> RefineResult:
+                      settings: RefineSettings = RefineSettings(),
+                      view_mask: Array | None = None) -> RefineResult:
     """The step after the network: matches from its outputs, multi-view PnP per hypothesis.
 
     ``outputs``: the network's dict for ONE instance, without the batch axis (``real_desc``,
@@ -354,6 +355,8 @@ def update_hypotheses(outputs: dict, rend: Renders, mesh: RasterMesh, crop_K: Ar
     ``scores`` [K]); ``rend``: :func:`render_hypotheses` of ``hypotheses`` [K, 4, 4]. The
     trainer calls this on its own forward pass (under ``stop_gradient``) for the
     classification target, so training and inference share the step without a second forward.
+    ``view_mask`` [V] bool (None: all views): the matches of a False view get weight 0 in PnP
+    (and in the returned ``matches``), and it does not count as a view the pose is in front of.
     """
     s = settings
     crop_size = rend.rgb.shape[-2]
@@ -361,6 +364,9 @@ def update_hypotheses(outputs: dict, rend: Renders, mesh: RasterMesh, crop_K: Ar
         outputs["real_desc"], outputs["render_desc"], rend.xyz, rend.mask, rend.edge,
         rend.pixel_mm, num_matches=s.num_matches, crop_size=crop_size, subpixel=s.subpixel,
         block=s.block)
+    vm = jnp.ones(matches.weights.shape[1], bool) if view_mask is None else view_mask
+    vm = jnp.asarray(vm, bool)
+    matches = matches._replace(weights=jnp.where(vm[None, :, None], matches.weights, 0.0))
     crop_K = jnp.asarray(crop_K, jnp.float32)
     T_cam_world = jnp.asarray(T_cam_world, jnp.float32)
     hypotheses = jnp.asarray(hypotheses, jnp.float32)
@@ -374,7 +380,7 @@ def update_hypotheses(outputs: dict, rend: Renders, mesh: RasterMesh, crop_K: Ar
     # solve_pnp returns the initial pose when it cannot solve; a pose that left the front of
     # every camera is no refinement either.
     c = transform(T_cam_world[None], transform(refined, mesh.center[None])[:, None])  # [K,V,1,3]
-    in_front = jnp.any(c[..., 0, 2] > 0, axis=1)
+    in_front = jnp.any((c[..., 0, 2] > 0) & vm[None], axis=1)
     refined = jnp.where(in_front[:, None, None], refined, hypotheses)
     return RefineResult(
         hypotheses=refined,

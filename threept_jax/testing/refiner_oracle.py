@@ -100,7 +100,7 @@ def make_oracle(output_size: int, *, sigma: float = 0.35, num_features: int = 19
         rend_c, rend_fg = _pool(renders, output_size)  # [1, K, V, h, w, 3]
         F = embed(real_c, real_fg, key_real)
         Z = embed(rend_c, rend_fg, key_render)
-        F = jnp.broadcast_to(F[:, None], (1, K) + F.shape[1:])
+        F = jnp.broadcast_to(F[:, None], F.shape[:1] + (K,) + F.shape[1:])
         real_fg = jnp.broadcast_to(real_fg[:, None], rend_fg.shape)
         inter = jnp.sum(real_fg & rend_fg, axis=(-2, -1))
         union = jnp.sum(real_fg | rend_fg, axis=(-2, -1))
