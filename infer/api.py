@@ -45,7 +45,8 @@ from threept_jax.render import Mesh
 
 DEFAULT_CACHE = pathlib.Path(os.environ.get("THREEPT_CACHE", "~/.cache/threept_jax")).expanduser()
 
-__all__ = ["Camera", "Models", "load", "run_scene", "refine", "DEFAULT_CACHE"]
+__all__ = ["Camera", "Models", "TrackedFrame", "load", "run_scene", "refine", "track",
+           "DEFAULT_CACHE"]
 
 
 @dataclasses.dataclass
@@ -68,9 +69,10 @@ class Models:
     refiner_config: RefinerConfig | None = None
     refiner_step: int | None = None
     refine_settings: RefineSettings | None = None
-    _scene_detectors: dict = dataclasses.field(default_factory=dict, repr=False)
-    _pose_renderers: dict = dataclasses.field(default_factory=dict, repr=False)
-    _scene_refiners: dict = dataclasses.field(default_factory=dict, repr=False)
+    # Per-object-set caches; not init fields, so a dataclasses.replace starts empty ones.
+    _scene_detectors: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
+    _pose_renderers: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
+    _scene_refiners: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
 
     def onboard(self, meshes: Mapping[int, str | os.PathLike | Mesh], units: str = "mm"
                 ) -> list[OnboardedObject]:
@@ -224,3 +226,56 @@ def refine(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarray],
     refiner = models.scene_refiner(list(objects))
     return refiner(images, np.stack(Ks), T_cam_world, [int(o) for o, _ in initial_poses],
                    [np.asarray(p) for _, p in initial_poses])
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackedFrame:
+    """One frame of :func:`track`.
+
+    Attributes:
+      index: frame number.
+      poses: the refined poses (:class:`infer.refine.RefinedPose`), one per tracked instance
+        (after a re-detection, ``history`` holds the pose before and after refinement only).
+      redetected: True when the frame ran detection (the first frame without ``init``, or a
+        tracked score fell under ``min_score``).
+      latency_s: wall time of the frame (refinement, plus detection when redetected).
+    """
+
+    index: int
+    poses: list
+    redetected: bool
+    latency_s: float
+
+
+def track(frames, cameras: Sequence[Camera | np.ndarray], objects: Sequence[OnboardedObject],
+          models: Models, init: Sequence[tuple[int, np.ndarray]] | None = None, *,
+          min_score: float = 0.0, **detector_options: Any):
+    """Track objects through a sequence by 3PT-R, re-detecting when confidence drops.
+
+    Each frame (a list of V images, or one image for V = 1) refines every instance from its pose
+    in the previous frame (:func:`refine`). When ``init`` is None on the first frame, or any
+    instance's refiner score falls under ``min_score``, the frame runs :func:`run_scene`
+    (detection, object generation, refinement) instead and the tracked set is replaced by its
+    instances. ``objects`` must be onboarded (``models.onboard``) when re-detection may run.
+    Yields a :class:`TrackedFrame` per frame, with its latency.
+    """
+    import time
+
+    current = None if init is None else [(int(o), np.asarray(T)) for o, T in init]
+    for index, frame in enumerate(frames):
+        images = [frame] if isinstance(frame, np.ndarray) else list(frame)
+        t0 = time.perf_counter()
+        poses, redetected = [], False
+        if current:
+            poses = refine(images, cameras, objects, current, models)
+        if current is None or any(p.score < min_score for p in poses):
+            if models.detector is None:
+                raise ValueError("track needs a detector to (re)detect: infer.load(DETECTOR_RUN, "
+                                 "refiner=...), or give init poses and min_score=-inf")
+            found = run_scene(images, cameras, objects, models, **detector_options)
+            redetected = True
+            poses = [RefinedPose(x.obj_id, x.T_world_obj, x.refine_score,
+                                 np.stack([x.T_world_obj_initial, x.T_world_obj]), x.masks)
+                     for x in found]
+        current = [(p.obj_id, p.T_world_obj) for p in poses]
+        yield TrackedFrame(index, poses, redetected, time.perf_counter() - t0)

@@ -7,6 +7,8 @@ refiner masks are image-sized and disjoint across instances, instance counts in 
 one compilation, and bad input gets a clear error.
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
@@ -36,18 +38,29 @@ def _pose(x, y, z, angle_deg=0.0):
 
 
 @pytest.fixture(scope="module")
-def refiner_models():
+def refiner_models(tmp_path_factory):
+    """(refiner-only Models, meshes, Models with an untrained detector and the same refiner).
+    Every test refines 3 or 4 instances in one 96 x 128 view: one bin, one compiled loop."""
+    from infer.onboarding import Onboarder
+    from threept_jax.models.configs import DetectorConfig
+    from threept_jax.models.detector import Detector
+
     cfg = get_refiner_config("tiny")
     settings = RefineSettings(num_matches=16, max_faces=256, subpixel=False)
     model = Refiner(cfg, rngs=nnx.Rngs(0))
     models = infer.Models(None, None, None, None, refiner=model, refiner_config=cfg,
                           refiner_step=0, refine_settings=settings)
     meshes = {1: _box_mesh((80, 40, 20), "plate"), 2: _box_mesh((30, 30, 90), "post")}
-    return models, meshes
+    dcfg = DetectorConfig(variant="tiny/16", image_size=64, render_size=32)
+    det = Detector(dcfg, rngs=nnx.Rngs(0))
+    onboarder = Onboarder(det, dcfg, "untrained@0", cache_dir=tmp_path_factory.mktemp("ob"),
+                          num_templates=48)
+    both = dataclasses.replace(models, detector=det, config=dcfg, step=0, onboarder=onboarder)
+    return models, meshes, both
 
 
 def test_refine_keeps_order_and_initial_poses_and_does_not_retrace_within_a_bin(refiner_models):
-    models, meshes = refiner_models
+    _, meshes, models = refiner_models
     image = np.random.default_rng(0).integers(0, 256, (96, 128, 3), dtype=np.uint8)
     poses = [(1, _pose(-40, 0, 600, 10)), (2, _pose(30, 10, 700)), (1, _pose(10, -20, 650, 40))]
     out = infer.refine([image], [K], meshes, poses, models)
@@ -67,24 +80,15 @@ def test_refine_keeps_order_and_initial_poses_and_does_not_retrace_within_a_bin(
     assert refiner.traces == 1
 
 
-def test_run_scene_refines_every_instance_with_masks_from_the_refiner(refiner_models, tmp_path):
-    from infer.onboarding import Onboarder
+def test_run_scene_refines_every_instance_with_masks_from_the_refiner(refiner_models):
     from infer.scene import find_instances
-    from threept_jax.models.configs import DetectorConfig
-    from threept_jax.models.detector import Detector
 
-    models, meshes = refiner_models
-    cfg = DetectorConfig(variant="tiny/16", image_size=64, render_size=32)
-    det = Detector(cfg, rngs=nnx.Rngs(0))
-    onboarder = Onboarder(det, cfg, "untrained@0", cache_dir=tmp_path, num_templates=48)
-    both = infer.Models(det, cfg, 0, onboarder, refiner=models.refiner,
-                        refiner_config=models.refiner_config, refiner_step=0,
-                        refine_settings=models.refine_settings)
+    _, meshes, both = refiner_models
     image = np.random.default_rng(1).integers(0, 256, (96, 128, 3), dtype=np.uint8)
-    options = dict(num_scales=1, score_threshold=0.0, max_detections=3)
+    options = dict(num_scales=1, score_threshold=0.0, max_detections=4)
     got = infer.run_scene([image], [K], meshes, both, **options)
     plain = infer.run_scene([image], [K], meshes, both, refine=False, **options)
-    assert 0 < len(got) == len(plain)
+    assert 3 <= len(got) == len(plain)  # 3 or 4: the bin of the other tests
     for a, b in zip(got, plain):
         assert a.obj_id == b.obj_id and a.refine_score is not None and b.refine_score is None
         np.testing.assert_allclose(a.T_world_obj_initial, b.T_world_obj, atol=1e-4)
@@ -98,7 +102,7 @@ def test_run_scene_refines_every_instance_with_masks_from_the_refiner(refiner_mo
 
 
 def test_refine_errors_name_the_problem(refiner_models):
-    models, meshes = refiner_models
+    models, meshes, _ = refiner_models
     image = np.zeros((96, 128, 3), np.uint8)
     with pytest.raises(KeyError, match=r"objects \[7\] are not in this refiner's object set"):
         infer.refine([image], [K], meshes, [(7, _pose(0, 0, 500))], models)
@@ -114,3 +118,25 @@ def test_refine_errors_name_the_problem(refiner_models):
         infer.refine([image, np.zeros((64, 64, 3), np.uint8)], rig, meshes,
                      [(1, _pose(0, 0, 500))], models)
     assert isinstance(models.scene_refiner(refine_objects(meshes)), SceneRefiner)
+
+
+def test_track_refines_from_the_previous_pose_and_redetects_under_the_score(refiner_models):
+    _, meshes, both = refiner_models
+    objects = both.onboard(meshes)
+    rng = np.random.default_rng(2)
+    frames = [rng.integers(0, 256, (96, 128, 3), dtype=np.uint8) for _ in range(3)]
+    init = [(1, _pose(0, 0, 600)), (2, _pose(-30, 0, 700)), (1, _pose(30, 10, 650, 30))]
+    # Never re-detect: each frame starts from the previous frame's refined pose.
+    got = list(infer.track(frames, [K], objects, both, init, min_score=-np.inf))
+    assert [f.redetected for f in got] == [False, False, False]
+    for prev, f in zip(got, got[1:]):
+        for a, b in zip(prev.poses, f.poses):
+            np.testing.assert_allclose(b.history[0], a.T_world_obj, atol=1e-3)
+    assert all(f.latency_s > 0 for f in got)
+    # A threshold no score reaches: every frame re-detects.
+    options = dict(num_scales=1, score_threshold=0.0, max_detections=4)
+    again = list(infer.track(frames[:2], [K], objects, both, init, min_score=np.inf, **options))
+    assert [f.redetected for f in again] == [True, True]
+    assert all(3 <= len(f.poses) <= 4 for f in again)
+    # One compiled loop served every call of this module (one bin, one view, one image size).
+    assert both.scene_refiner(objects).traces == 1

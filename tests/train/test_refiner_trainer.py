@@ -162,6 +162,11 @@ def test_launcher_trains_the_refiner_and_refuses_a_detector_key(records, tmp_pat
     assert settings.num_matches == 16 and settings.max_faces == 256
     out = model(np.zeros((1, 1, 64, 64, 3), np.uint8), np.zeros((1, 2, 1, 64, 64, 3), np.uint8))
     assert out["scores"].shape == (1, 2)
+    import infer
+
+    models = infer.load(refiner=tmp_path / "w")
+    assert models.detector is None and models.refiner_step == 1
+    assert models.refine_settings == settings
 
     bad = subprocess.run(base + ["--workdir", str(tmp_path / "bad"), "--config.data.max_instances=3"],
                          env=SUBPROCESS_ENV, capture_output=True, text=True, timeout=120)
