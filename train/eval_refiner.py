@@ -224,3 +224,66 @@ def summarize(r: Mapping[str, np.ndarray], *, num_steps: int,
     out["eval/unseen_share"] = float(np.mean([unseen.get(int(o), False)
                                               for o in r["obj_id"][keep]]))
     return out
+
+
+def main(argv=None) -> int:
+    """``python -m train.eval_refiner --workdir RUN [--step best|latest|N] [--data-dir D]
+    [--num-examples N] [--subpixel on|off] [--untrained]``: the held-out evaluation of a refiner
+    run's checkpoint (or of the untrained network of its config) as JSON on stdout."""
+    import argparse
+    import json
+    import sys
+
+    from train import sharding as _sharding
+    from train.run_config import default_config
+
+    p = argparse.ArgumentParser(prog="python -m train.eval_refiner", description=main.__doc__)
+    p.add_argument("--workdir", required=True, help="a refiner training run")
+    p.add_argument("--step", default="best")
+    p.add_argument("--data-dir", default=None, help="records of held-out objects (default: the "
+                   "run's eval.data_dir, else its data_dir's val split)")
+    p.add_argument("--num-examples", type=int, default=None)
+    p.add_argument("--subpixel", choices=("on", "off"), default=None,
+                   help="override the run's refine.subpixel")
+    p.add_argument("--untrained", action="store_true", help="evaluate freshly initialised weights")
+    args = p.parse_args(argv)
+    from infer.checkpoint import load_refiner
+    from threept_jax.data.run_dir import RunDir
+    from threept_jax.models.refiner import Refiner
+
+    run = RunDir(args.workdir, model="refiner")
+    if not run.config_file.exists():
+        p.error(f"{args.workdir} is not a refiner training run (no {run.config_file})")
+    config = default_config("refiner")
+    config.update_from_flattened_dict(_flat(run.read_config()))
+    if args.data_dir:
+        config.eval.data_dir = args.data_dir
+    if args.num_examples:
+        config.eval.num_examples = args.num_examples
+    if args.subpixel:
+        config.refine.subpixel = args.subpixel == "on"
+    model, _, step, _ = load_refiner(args.workdir, args.step)
+    if args.untrained:
+        model = Refiner(model_config(config), rngs=nnx.Rngs(0))
+    graphdef, params = nnx.split(model)
+    mesh = _sharding.make_mesh(1, 1, jax.devices()[:1])
+    config.eval.batch_size = min(int(config.eval.batch_size), int(config.eval.num_examples))
+    out = RefinerEvaluator(config, graphdef, mesh)(nnx.to_pure_dict(params))
+    out["step"] = "untrained" if args.untrained else step
+    json.dump(out, sys.stdout, indent=1)
+    print()
+    return 0
+
+
+def _flat(tree, prefix=""):
+    out = {}
+    for k, v in tree.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -142,7 +142,7 @@ def test_evaluation_on_held_out_meshes_says_they_are_unseen(records, tmp_path):
     assert not set(mesh_digests(held).values()) & training_digests(seen)
 
 
-def test_launcher_trains_the_refiner_and_refuses_a_detector_key(records, tmp_path):
+def test_launcher_trains_the_refiner_and_refuses_a_detector_key(records, tmp_path, capsys):
     seen, _ = records
     base = [sys.executable, str(ROOT / "train" / "launch.py"), "--config",
             str(ROOT / "train" / "configs" / "refiner.py") + ":tiny"]
@@ -167,6 +167,15 @@ def test_launcher_trains_the_refiner_and_refuses_a_detector_key(records, tmp_pat
     models = infer.load(refiner=tmp_path / "w")
     assert models.detector is None and models.refiner_step == 1
     assert models.refine_settings == settings
+    # The evaluation command on the run's checkpoint.
+    from train import eval_refiner
+
+    assert eval_refiner.main(["--workdir", str(tmp_path / "w"), "--num-examples", "2"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["step"] == 1 and out["eval/num_instances"] >= 1
+    with pytest.raises(SystemExit) as e:
+        eval_refiner.main(["--workdir", str(tmp_path)])
+    assert e.value.code == 2
 
     bad = subprocess.run(base + ["--workdir", str(tmp_path / "bad"), "--config.data.max_instances=3"],
                          env=SUBPROCESS_ENV, capture_output=True, text=True, timeout=120)
