@@ -8,9 +8,6 @@ parameters alone, on the default device, without the optimizer state or the data
 
 from __future__ import annotations
 
-import jax
-from flax import nnx
-
 from threept_jax.data.run_dir import RunDir
 from threept_jax.models.configs import DetectorConfig, RefinerConfig
 from threept_jax.models.detector import Detector
@@ -35,7 +32,7 @@ def load_detector(workdir, step: int | str = "best", dtype: str | None = None
 
     Returns (model, config, step).
     """
-    return _load(RunDir(workdir), Detector, step, dtype)
+    return RunDir(workdir).load_model(step, dtype)
 
 
 def load_refiner(workdir, step: int | str = "best", dtype: str | None = None
@@ -47,18 +44,5 @@ def load_refiner(workdir, step: int | str = "best", dtype: str | None = None
     refinement step is run at inference with the options it was trained with).
     """
     run = RunDir(workdir, model="refiner")
-    model, cfg, step = _load(run, Refiner, step, dtype)
-    refine = run.read_config().get("refine", {})
-    return model, cfg, step, RefineSettings(**refine)
-
-
-def _load(run: RunDir, cls, step, dtype):
-    cfg = run.read_model_config(dtype)
-    step = run.resolve_step(step)
-    abstract = nnx.eval_shape(lambda: cls(cfg, rngs=nnx.Rngs(0)))
-    graphdef, abstract_params = nnx.split(abstract, nnx.Param)
-    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-    target = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device),
-                          nnx.to_pure_dict(abstract_params))
-    nnx.replace_by_pure_dict(abstract_params, run.restore_params(step, target))
-    return nnx.merge(graphdef, abstract_params), cfg, step
+    model, cfg, step = run.load_model(step, dtype)
+    return model, cfg, step, RefineSettings(**run.read_config().get("refine", {}))

@@ -247,7 +247,6 @@ def main(argv=None) -> int:
                    help="override the run's refine.subpixel")
     p.add_argument("--untrained", action="store_true", help="evaluate freshly initialised weights")
     args = p.parse_args(argv)
-    from infer.checkpoint import load_refiner
     from threept_jax.data.run_dir import RunDir
     from threept_jax.models.refiner import Refiner
 
@@ -262,7 +261,7 @@ def main(argv=None) -> int:
         config.eval.num_examples = args.num_examples
     if args.subpixel:
         config.refine.subpixel = args.subpixel == "on"
-    model, _, step, _ = load_refiner(args.workdir, args.step)
+    model, _, step = run.load_model(args.step)
     if args.untrained:
         model = Refiner(model_config(config), rngs=nnx.Rngs(0))
     graphdef, params = nnx.split(model)

@@ -240,6 +240,27 @@ class RunDir:
                                                    partial_restore=True)}))
         return restored[STATE_ITEM]["params"]
 
+    def load_model(self, step: int | str = "best", dtype: str | None = None):
+        """(network with the parameters of ``step`` on the default device, its config, the
+        resolved step): the run's ``Detector`` or ``Refiner`` (``self.model``), for inference
+        and evaluation; ``dtype`` overrides the compute dtype."""
+        import jax
+        from flax import nnx
+
+        if self.model == "refiner":
+            from threept_jax.models.refiner import Refiner as cls
+        else:
+            from threept_jax.models.detector import Detector as cls
+        cfg = self.read_model_config(dtype)
+        step = self.resolve_step(step)
+        abstract = nnx.eval_shape(lambda: cls(cfg, rngs=nnx.Rngs(0)))
+        graphdef, abstract_params = nnx.split(abstract, nnx.Param)
+        device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+        target = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device),
+                              nnx.to_pure_dict(abstract_params))
+        nnx.replace_by_pure_dict(abstract_params, self.restore_params(step, target))
+        return nnx.merge(graphdef, abstract_params), cfg, step
+
 
 def metric_fn(name: str) -> Callable[[Mapping[str, float]], float]:
     """The value checkpoints are ranked by: ``metrics[name]`` as a float."""
