@@ -235,7 +235,7 @@ def main(argv=None) -> int:
     import sys
 
     from train import sharding as _sharding
-    from train.run_config import default_config
+    from train.run_config import default_config, flatten_config
 
     p = argparse.ArgumentParser(prog="python -m train.eval_refiner", description=main.__doc__)
     p.add_argument("--workdir", required=True, help="a refiner training run")
@@ -254,7 +254,7 @@ def main(argv=None) -> int:
     if not run.config_file.exists():
         p.error(f"{args.workdir} is not a refiner training run (no {run.config_file})")
     config = default_config("refiner")
-    config.update_from_flattened_dict(_flat(run.read_config()))
+    config.update_from_flattened_dict(flatten_config(run.read_config()))
     if args.data_dir:
         config.eval.data_dir = args.data_dir
     if args.num_examples:
@@ -272,16 +272,6 @@ def main(argv=None) -> int:
     json.dump(out, sys.stdout, indent=1)
     print()
     return 0
-
-
-def _flat(tree, prefix=""):
-    out = {}
-    for k, v in tree.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
 
 
 if __name__ == "__main__":

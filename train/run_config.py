@@ -386,11 +386,12 @@ RESUME_FREE_KEYS = frozenset({
 ALLOW_CHANGE_FLAG = "--allow_config_change"
 
 
-def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+def flatten_config(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` (a saved config.json as override keys)."""
     out = {}
     for key, value in tree.items():
         if isinstance(value, Mapping):
-            out.update(_flatten(value, f"{prefix}{key}."))
+            out.update(flatten_config(value, f"{prefix}{key}."))
         else:
             out[f"{prefix}{key}"] = value
     return out
@@ -407,8 +408,8 @@ def check_resume_config(saved: Mapping[str, Any], config: ml_collections.ConfigD
     Raises :class:`ConfigError` naming each refused key with its old and new values and
     :data:`ALLOW_CHANGE_FLAG`, unless ``allow_change``.
     """
-    old = _flatten(saved)
-    new = _flatten(json.loads(config.to_json_best_effort()))
+    old = flatten_config(saved)
+    new = flatten_config(json.loads(config.to_json_best_effort()))
     changes = {k: (old.get(k), new.get(k)) for k in sorted(set(old) | set(new))
                if old.get(k) != new.get(k)}
     refused = [k for k in changes if k in old and k not in RESUME_FREE_KEYS]

@@ -10,7 +10,7 @@ import jax
 import numpy as np
 import pytest
 from fixtures.refiner_records import write_refiner_records
-from fixtures.training import ROOT, SUBPROCESS_ENV
+from fixtures.training import ROOT, SUBPROCESS_ENV, apply_overrides
 
 from infer.checkpoint import load_refiner
 from threept_jax.data.run_dir import RunDir
@@ -49,13 +49,7 @@ def small_config(data_dir, **overrides):
     c.mesh.update(data=1, fsdp=1, fsdp_min_size=0)
     c.log_every = 1
     c.progress_bar = False
-    for key, value in overrides.items():
-        node = c
-        *path, last = key.split(".")
-        for p in path:
-            node = node[p]
-        node[last] = value
-    return c
+    return apply_overrides(c, overrides)
 
 
 def _params(trainer):
