@@ -27,13 +27,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import nnx
-from threept_jax.pipeline.refine_loop import LoopSettings, pad_to_bin, paste_masks, refine_instances
 
 from threept_jax.data.banks import bank_symmetries
 from threept_jax.data.detector_input import pad_symmetries
 from threept_jax.data.refiner_input import RefinerMeshes
 from threept_jax.models.configs import RefinerConfig
 from threept_jax.models.refiner import Refiner
+from threept_jax.pipeline.refine_loop import LoopSettings, pad_to_bin, paste_masks, refine_instances
 from threept_jax.pipeline.refinement import RefineSettings
 from threept_jax.render.mesh import Mesh, load_mesh, prepare_mesh
 
