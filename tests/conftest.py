@@ -20,3 +20,26 @@ def bop_models_dir():
     if not SHARED_MESHES.is_dir():
         pytest.skip(f"shared BOP meshes not found at {SHARED_MESHES} (CI has them beside the checkout)")
     return SHARED_MESHES
+
+
+#: Modules whose tests take minutes (compilations, training runs): scheduled first, so that the
+#: two xdist workers run them side by side while the many short tests fill the gaps at the end
+#: (``make test`` groups each module on one worker, ``--dist loadscope``, so a module's compiled
+#: fixtures are built once).
+SLOW_FIRST = (
+    "tests/train/test_adapt.py", "tests/train/test_refiner_learning.py",
+    "tests/train/test_learning.py", "tests/pipeline/test_refine_loop.py",
+    "tests/train/test_refiner_trainer.py", "tests/train/test_detector_trainer.py",
+    "tests/train/test_cluster.py", "tests/infer/test_refine_api.py",
+    "tests/pipeline/test_refinement.py", "tests/train/test_resume.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(SLOW_FIRST)}
+
+    def key(item):
+        path = pathlib.Path(str(item.fspath)).resolve().relative_to(ROOT).as_posix()
+        return rank.get(path, len(SLOW_FIRST))
+
+    items.sort(key=key)  # stable: the order within a module and among the rest is kept
