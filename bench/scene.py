@@ -21,8 +21,9 @@ Per (objects N, views V), all warm times are medians of ``--repeats`` calls:
   hypotheses each (random rotations, translations around the instance's grid point): cold
   (first call: compilation included) and warm for the full loop (3 iterations), and per
   iteration as DIFFERENCES of warm times of loops with ``LoopSettings(iterations=1, 2, 3)``
-  (one SceneRefiner each): iter 1 = t(1) (so it carries the per-call overhead: padding, host
-  transfer, mask pasting), iter 2 = t(2) - t(1), iter 3 = t(3) - t(2).
+  (one SceneRefiner each, timed in interleaved rounds): iter 1 = t(1) (so it carries the
+  per-call overhead: padding, host transfer, mask pasting), iter 2 = t(2) - t(1), iter 3 =
+  t(3) - t(2).
 * renders per call: N x (8 + 4 + 2) x V at the default halving; the loop pads N to a bin
   (``pad_to_bin``: 5 -> 8, 20 -> 32) and computes the padding too, so ms per render divides the
   warm time by the padded count. If time follows renders (objects x views) rather than Python
@@ -119,14 +120,10 @@ def hypotheses(n: int, rng: np.random.Generator) -> list[np.ndarray]:
     return out
 
 
-def median_warm(call, repeats: int) -> float:
-    call()  # cold (compilation), not reported
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        call()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+def seconds(call) -> float:
+    t0 = time.perf_counter()
+    call()
+    return time.perf_counter() - t0
 
 
 def main() -> None:
@@ -190,15 +187,22 @@ def main() -> None:
                                        with_masks=False)
             found = detect()
             dets = [len(det.detect(im, k)) for im, k in zip(images, Ks)]
-            det_warm = median_warm(detect, args.repeats)
+            det_warm = cold_and_warm(detect, args.repeats)[1]
 
             hyps = hypotheses(n, rng)
             call = {it: functools.partial(r, list(images), Ks, T_cw, ids[:n], hyps)
                     for it, r in refiners.items()}
-            cold, warm = cold_and_warm(call[3], args.repeats)
-            t_it = {3: warm}
+            cold = seconds(call[3])
             for it in settings_by_iters[:-1]:
-                t_it[it] = median_warm(call[it], args.repeats)
+                call[it]()  # compilation
+            # Rounds of 1, 2, 3 iterations in turn, so that load drifting on the shared cores
+            # hits the three alike and their differences stay meaningful.
+            runs = {it: [] for it in call}
+            for _ in range(args.repeats):
+                for it in settings_by_iters:
+                    runs[it].append(seconds(call[it]))
+            t_it = {it: statistics.median(r) for it, r in runs.items()}
+            warm = t_it[3]
             iters = ([t_it[1], t_it[2] - t_it[1], t_it[3] - t_it[2]]
                      if len(t_it) == 3 else [float("nan")] * 3)
             renders = n * sum(schedule[:-1]) * V
@@ -212,9 +216,10 @@ def main() -> None:
     lo = min(warm_of, key=lambda k: renders_of[k][0])
     hi = max(warm_of, key=lambda k: renders_of[k][0])
     if hi != lo:
+        (r_hi, p_hi), (r_lo, p_lo) = renders_of[hi], renders_of[lo]
         print(f"ratio (N={hi[0]}, V={hi[1]}) / (N={lo[0]}, V={lo[1]}): warm refinement "
-              f"{warm_of[hi] / warm_of[lo]:.1f}x; renders {renders_of[hi][0] / renders_of[lo][0]:.0f}x "
-              f"({renders_of[hi][1] / renders_of[lo][1]:.0f}x padded)")
+              f"{warm_of[hi] / warm_of[lo]:.1f}x; renders {r_hi / r_lo:.0f}x "
+              f"({p_hi / p_lo:.0f}x padded)")
 
 
 if __name__ == "__main__":
