@@ -110,6 +110,14 @@ class SceneDetector:
     def score_threshold(self) -> float:
         return self._core.settings.score_threshold
 
+    @property
+    def num_hypotheses(self) -> int:
+        return self._core.settings.num_hypotheses
+
+    @property
+    def min_angle_deg(self) -> float:
+        return self._core.settings.min_angle_deg
+
     def _object_sizes(self, K: np.ndarray | None) -> tuple[float, float] | None:
         """Expected projected diameters (px) from the depth range, None when unknown."""
         if self.depth_range is None or K is None:

@@ -108,6 +108,24 @@ def test_bad_inputs_name_the_problem(pipeline):
         SceneDetector(model, cfg, [])
 
 
+def test_multi_view_find_instances_fuses_with_the_detector_hypothesis_settings(pipeline):
+    from threept_jax.geometry.camera import look_at
+
+    model, cfg, objects, _, _ = pipeline
+    det = SceneDetector(model, cfg, objects, num_scales=1, score_threshold=0.0,
+                        max_detections=6, num_hypotheses=3, min_angle_deg=30.0)
+    image = np.random.default_rng(2).integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    K = np.array([[80.0, 0, 31.5], [0, 80.0, 31.5], [0, 0, 1]])
+    eyes = [[600.0 * np.cos(a), 600.0 * np.sin(a), 400.0] for a in (0.0, 0.3, 0.6)]
+    T_cam_world = np.stack([np.asarray(look_at(e, np.zeros(3))) for e in eyes])
+    found = find_instances(det, [image] * 3, [K] * 3, T_cam_world, with_masks=False,
+                           min_views=2)
+    assert len(found) > 0  # the seeded untrained detector gives 5 here
+    for x in found:
+        assert x.hypotheses.shape == (3, 4, 4) and len(x.boxes) >= 2
+    assert (det.num_hypotheses, det.min_angle_deg) == (3, 30.0)
+
+
 def test_public_api_runs_the_stages_and_reuses_compiled_detectors(pipeline):
     import infer
 
