@@ -37,6 +37,7 @@ from infer.api import load, prepare_views, track
 from infer.cli import (
     _cameras,
     _common,
+    _int_at_least,
     _number_in,
     _read_rgb,
     _step,
@@ -75,14 +76,14 @@ def add_track_parser(sub) -> argparse.ArgumentParser:
                           "each, in natural name order (frame2 before frame10)")
     src.add_argument("--video", type=pathlib.Path, metavar="FILE",
                      help="a video file (one view; any format OpenCV reads)")
-    p.add_argument("--max-frames", type=_int_positive, default=None,
+    p.add_argument("--max-frames", type=_int_at_least(1), default=None,
                    help="stop after this many frames")
     p.add_argument("--K", action="append", metavar="fx,fy,cx,cy",
                    help="intrinsics in pixels, one per view (or use --cameras)")
     p.add_argument("--cameras", type=pathlib.Path,
                    help='JSON list, one per view: {"K": 3x3, "T_cam_world": 4x4 (mm, needed for '
                         'several views), "calibration_size": [W, H] (optional)}')
-    p.add_argument("--calibration-size", type=_int_positive, nargs=2, metavar=("W", "H"),
+    p.add_argument("--calibration-size", type=_int_at_least(1), nargs=2, metavar=("W", "H"),
                    help="image size the intrinsics were calibrated at, when the frames are "
                         "resized")
     p.add_argument("--init", type=pathlib.Path, metavar="FILE",
@@ -94,16 +95,6 @@ def add_track_parser(sub) -> argparse.ArgumentParser:
                         "logit falls under this; default: never (the score is not calibrated "
                         "across objects: pick a threshold from the scores of track.jsonl)")
     return p
-
-
-def _int_positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
 
 
 def _natural_key(path: pathlib.Path):
