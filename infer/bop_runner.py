@@ -1,30 +1,52 @@
 """``python -m infer bop``: a BOP split -> BOP 6D results CSV and 2D results JSON (RLE masks),
-overlays, and optionally the BOP evaluator's scores."""
+overlays, and optionally the BOP evaluator's scores.
+
+Every image (``--targets bop19|bop24|all``) or multi-view group (``--targets multiview``) is
+one :func:`infer.run_scene` call: detection, object generation, and refinement when a refiner
+is given (``--refiner``). An image's BOP ``time`` is the wall time of that call (a group's time
+on every view's rows). With a refiner, ``{method}_*`` holds the refined poses and the refiner's
+masks and ``{method}-initial_*`` the object-generation poses of the same instances with their
+rendered silhouettes: the files a run without the refiner writes, so one run gives before and
+after. ``--refine-only RESULTS.csv`` refines another method's 6D results instead
+(:func:`run_refine_only`).
+"""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import pathlib
 import time
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
+from infer.api import Camera, refine, run_scene
 from infer.cli import detector_options, load_models
 
 #: Images without detections named one by one on the console; the rest are counted.
 MAX_EMPTY_LINES = 10
 
 
-def select_images_and_objects(args, ds) -> tuple[list[tuple[int, int]], dict]:
-    """The (scene_id, im_id) pairs and {obj_id: ObjectModel} a run covers, checked before any
-    slow work.
+@dataclasses.dataclass(frozen=True)
+class View:
+    """One image of a run: scene, image id and sensor (None: the scene's only camera)."""
+
+    scene_id: int
+    im_id: int
+    sensor: str | None = None
+
+
+def select_groups_and_objects(args, ds) -> tuple[list[tuple[View, ...]], dict]:
+    """The groups of views a run covers (one view each, except ``--targets multiview``) and
+    {obj_id: ObjectModel}, checked before any slow work.
 
     Objects: ``--obj-ids`` if given, else the objects the targets file names for the selected
-    images (BOP19-style targets), else every object of ``models_info.json`` (BOP24-style
-    targets and ``--targets all`` name images only). Objects outside that set are never
-    onboarded, so ``models_info.json`` may list objects whose meshes are absent; a selected
-    object without its mesh is an error naming it and the expected file.
+    images (BOP19-style targets), else every object of ``models_info.json`` (BOP24-style and
+    multi-view targets and ``--targets all`` name images only). Objects outside that set are
+    never onboarded, so ``models_info.json`` may list objects whose meshes are absent; a
+    selected object without its mesh is an error naming it and the expected file.
     """
     models_dir = ds.models_dir(args.models_subdir)
     models = ds.models(args.models_subdir)
@@ -33,10 +55,19 @@ def select_images_and_objects(args, ds) -> tuple[list[tuple[int, int]], dict]:
         if unknown:
             raise ValueError(f"--obj-ids {unknown} are not in {models_dir / 'models_info.json'} "
                              f"(it lists {sorted(models)})")
-    split = ds.split(args.split)
     targets = None
-    if args.targets == "all":
-        images = [(s, i) for s in split.scene_ids for i in split.scene(s).image_ids]
+    if args.targets == "multiview":
+        mv = ds.multiview_targets()
+        if mv is None:
+            raise FileNotFoundError(
+                f"{args.dataset_dir}/test_targets_multiview_bop25.json not found; multi-view "
+                "runs read their groups of views from it (datagen --views V writes one)")
+        groups = [tuple(View(g.scene_id, im, sensor) for sensor, im in g.views) for g in mv
+                  if not args.scene_ids or g.scene_id in args.scene_ids]
+    elif args.targets == "all":
+        split = ds.split(args.split)
+        groups = [(View(s, i),) for s in split.scene_ids for i in split.scene(s).image_ids
+                  if not args.scene_ids or s in args.scene_ids]
     else:
         targets = ds.targets(args.targets)
         if targets is None:
@@ -47,16 +78,14 @@ def select_images_and_objects(args, ds) -> tuple[list[tuple[int, int]], dict]:
             targets = [t for t in targets if t.obj_id is None or t.obj_id in args.obj_ids]
         if args.scene_ids:
             targets = [t for t in targets if t.scene_id in args.scene_ids]
-        images = sorted({(t.scene_id, t.im_id) for t in targets})
-    if args.scene_ids:
-        images = [x for x in images if x[0] in args.scene_ids]
-    images = images[: args.max_images]
-    if not images:
+        groups = [(View(s, i),) for s, i in sorted({(t.scene_id, t.im_id) for t in targets})]
+    groups = groups[: args.max_images]
+    if not groups:
         raise ValueError("no images selected (check --scene-ids, --obj-ids and --targets)")
     if args.obj_ids:
         wanted = set(args.obj_ids)
     elif targets is not None and any(t.obj_id is not None for t in targets):
-        chosen = set(images)
+        chosen = {(g[0].scene_id, g[0].im_id) for g in groups}
         wanted = {t.obj_id for t in targets
                   if t.obj_id is not None and (t.scene_id, t.im_id) in chosen}
     else:
@@ -71,76 +100,389 @@ def select_images_and_objects(args, ds) -> tuple[list[tuple[int, int]], dict]:
         raise FileNotFoundError(
             f"no mesh for target objects {missing} ({paths}); add the meshes, or pass --obj-ids "
             "with the objects to query")
-    return images, {k: models[k] for k in sorted(wanted)}
+    return groups, {k: models[k] for k in sorted(wanted)}
+
+
+def _scene(ds, split_name: str, view: View):
+    return ds.split(split_name, view.sensor).scene(view.scene_id)
+
+
+def group_cameras(ds, split_name: str, group: tuple[View, ...], multiview: bool) -> list[Camera]:
+    """The run_scene cameras of a group: K alone for one view (the world frame is the camera
+    frame), K and T_cam_world (``cam_R_w2c``/``cam_t_w2c``) for a multi-view group."""
+    cams = []
+    for view in group:
+        scene = _scene(ds, split_name, view)
+        where = f"{scene._file('scene_camera')} image {view.im_id}"
+        if view.im_id not in scene.cameras:
+            raise FileNotFoundError(f"{where} does not exist (the targets name it)")
+        cam = scene.cameras[view.im_id]
+        if multiview and cam.T_cam_world is None:
+            raise ValueError(f"{where} has no cam_R_w2c/cam_t_w2c: a multi-view group needs "
+                             "each view's world -> camera pose")
+        cams.append(Camera(cam.K, T_cam_world=cam.T_cam_world if multiview else None))
+    return cams
+
+
+def _rgb(image: np.ndarray) -> np.ndarray:
+    return np.repeat(image[..., None], 3, axis=2) if image.ndim == 2 else image[..., :3]
+
+
+def _clip_box(box, hw) -> tuple[float, float, float, float]:
+    """xyxy clipped to the image; BOP's 2D ground truth lies inside it."""
+    x0, y0, x1, y1 = np.clip(np.asarray(box, np.float64), 0, [hw[1], hw[0]] * 2).tolist()
+    return x0, y0, x1, y1
+
+
+def _mask_box(mask: np.ndarray) -> tuple[float, float, float, float] | None:
+    """Tight xyxy box (pixel edges) of a mask, None when it is empty."""
+    ys, xs = np.nonzero(mask)
+    if not len(xs):
+        return None
+    return float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1)
+
+
+def _projected_box(points: np.ndarray, T_cam_obj: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """xyxy box of the model points projected at a pose (points behind the camera pushed to
+    z = 1 mm)."""
+    p = points.astype(np.float64) @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
+    uv = p[:, :2] / np.maximum(p[:, 2:], 1.0) * np.diag(K)[:2] + K[:2, 2] + 0.5
+    return np.concatenate([uv.min(0), uv.max(0)])
+
+
+def in_view(center_cam: np.ndarray, K: np.ndarray, hw: tuple[int, int]) -> bool:
+    """Whether a point [3] of the camera frame (mm) lies in front of the camera and projects
+    inside the image (pixel centres at integers)."""
+    if center_cam[2] <= 0:
+        return False
+    u, v = (K @ center_cam)[:2] / center_cam[2]
+    return bool(-0.5 <= u < hw[1] - 0.5 and -0.5 <= v < hw[0] - 0.5)
+
+
+@dataclasses.dataclass
+class Results:
+    """The rows of one pair of result files (6D CSV, 2D JSON) as they accumulate."""
+
+    poses: list = dataclasses.field(default_factory=list)
+    dets2d: list = dataclasses.field(default_factory=list)
+
+    def write(self, out: pathlib.Path, stem: str) -> tuple[pathlib.Path, pathlib.Path]:
+        from threept_jax.data import bop
+
+        csv_path, json_path = out / f"{stem}.csv", out / f"{stem}.json"
+        bop.write_pose_results(csv_path, self.poses)
+        bop.write_detection_results(json_path, self.dets2d)
+        return csv_path, json_path
+
+
+def add_group_rows(results: Results, group, images, Ks, T_cam_world, instances, poses, masks,
+                   elapsed: float, objects: dict, *, refined: bool) -> list[list[tuple]]:
+    """Append the rows of a group's instances (world poses ``poses``, per-view ``masks``) to
+    ``results``, per view in that view's camera frame; returns, per view, the (instance index,
+    T_cam_obj, 2D xyxy box, mask) of the rows written (for overlays).
+
+    One view: every instance. Several: those whose bounding-sphere centre projects inside the
+    view in front of its camera. Score: the detection score (AP ranks by it; the refiner's
+    score is a logit not calibrated across objects). 2D box: for refined instances the tight
+    box of the refiner mask in that view, else the amodal detection box (the projected model
+    when the view did not detect it), clipped to the image.
+    """
+    from threept_jax.data import bop
+
+    drawn = []
+    for v, (view, image, K) in enumerate(zip(group, images, Ks)):
+        hw = image.shape[:2]
+        rows = []
+        for i, (x, T_wo, m) in enumerate(zip(instances, poses, masks)):
+            T = np.asarray(T_cam_world[v], np.float64) @ np.asarray(T_wo, np.float64)
+            obj = objects[x.obj_id]
+            if len(group) > 1 and not in_view(T[:3, :3] @ obj.center + T[:3, 3], K, hw):
+                continue
+            box = _mask_box(m[v]) if refined else None
+            if box is None:
+                # A refined instance whose mask is empty in this view keeps its row, with the
+                # detection box and an empty RLE: its pose still counts for 6D.
+                box = x.boxes[v] if v in x.boxes else _projected_box(obj.mesh.vertices, T, K)
+            x0, y0, x1, y1 = _clip_box(box, hw)
+            results.poses.append(bop.PoseEstimate(view.scene_id, view.im_id, x.obj_id, x.score,
+                                                  T[:3, :3], T[:3, 3], elapsed))
+            results.dets2d.append(bop.Detection2D(view.scene_id, view.im_id, x.obj_id, x.score,
+                                                  (x0, y0, x1 - x0, y1 - y0),
+                                                  bop.mask_to_rle(m[v]), elapsed))
+            rows.append((i, T, np.array([x0, y0, x1, y1]), m[v]))
+        drawn.append(rows)
+    return drawn
+
+
+def silhouettes(instances, poses, images, Ks, T_cam_world, renderer) -> list[dict]:
+    """{view: bool [H, W]} per instance: the silhouettes of the CAD models at ``poses`` (world),
+    each pixel to the best instance covering it: the masks ``run_scene`` gives without a
+    refiner (``infer.scene.find_instances``)."""
+    from infer.detect import Detection
+    from infer.masks import detection_masks
+
+    out = [{} for _ in instances]
+    for v, (image, K) in enumerate(zip(images, Ks)):
+        posed = [Detection(x.obj_id, np.zeros(4, np.float32), x.score,
+                           (T_cam_world[v] @ np.asarray(T, np.float32))[None],
+                           x.hypothesis_scores[:1], np.zeros(0, np.float32))
+                 for x, T in zip(instances, poses)]
+        for m, mask in zip(out, detection_masks(posed, np.asarray(K, np.float32),
+                                                image.shape[:2], renderer)):
+            m[v] = mask
+    return out
+
+
+def _draw(path: pathlib.Path, image, rows, instances, threshold: float, caption) -> None:
+    from infer.detect import Detection
+    from infer.visualize import draw_detections, empty_caption
+
+    shown = [r for r in rows if instances[r[0]].score >= threshold]
+    if rows and not shown:
+        caption = empty_caption(threshold, max(instances[r[0]].score for r in rows))
+    dets = [Detection(instances[i].obj_id, box, instances[i].score, T[None], np.ones(1),
+                      np.zeros(0)) for i, T, box, _ in shown]
+    canvas = draw_detections(image, dets, [m for *_, m in shown], caption=caption)
+    path.parent.mkdir(exist_ok=True)
+    cv2.imwrite(str(path), cv2.cvtColor(canvas, cv2.COLOR_RGB2BGR))
 
 
 def run_bop(args) -> dict:
-    from infer.masks import PoseRenderer, detection_masks
-    from infer.visualize import draw_detections, empty_caption
+    """The ``bop`` command (module docstring); returns the summary (file paths, counts and,
+    with ``--evaluate``, the scores)."""
     from threept_jax.data import bop
 
+    if args.refine_only is not None:
+        return run_refine_only(args)
     ds = bop.BopDataset(args.dataset_dir)
-    images, models = select_images_and_objects(args, ds)
-    split = ds.split(args.split)
+    groups, models = select_groups_and_objects(args, ds)
+    multiview = args.targets == "multiview"
+    cameras = [group_cameras(ds, args.split, g, multiview) for g in groups]
 
     nets = load_models(args)
     objects = nets.onboard({k: m.path for k, m in models.items()})
-    detector = nets.scene_detector(objects, **detector_options(args))
-    renderer = PoseRenderer(objects)
+    by_id = {o.obj_id: o for o in objects}
+    refining = nets.refiner is not None
     args.out.mkdir(parents=True, exist_ok=True)
-    poses, dets2d, empty = [], [], []
+    final, initial = Results(), Results()
+    empty = []
     overlay_threshold = (args.score_threshold if args.overlay_threshold is None
                          else args.overlay_threshold)
-    for n, (scene_id, im_id) in enumerate(tqdm(images, desc="images", unit="img", dynamic_ncols=True)):
-        scene = split.scene(scene_id)
-        image, K = scene.image(im_id), scene.cameras[im_id].K
-        if image.ndim == 2:
-            image = np.repeat(image[..., None], 3, axis=2)
+    what = "groups" if multiview else "images"
+    shown = 0
+    for group, cams in zip(tqdm(groups, desc=what, unit=what[:-1], dynamic_ncols=True),
+                           cameras):
+        images = [_rgb(_scene(ds, args.split, v).image(v.im_id)) for v in group]
         start = time.perf_counter()
-        dets = detector.detect(image, K)
-        masks = detection_masks(dets, K, image.shape[:2], renderer)
+        instances = run_scene(images, cams, objects, nets, with_masks=True,
+                              **detector_options(args))
         elapsed = time.perf_counter() - start
+        Ks = [c.K for c in cams]
+        T_cw = (np.stack([c.T_cam_world for c in cams]).astype(np.float32) if multiview
+                else np.eye(4, dtype=np.float32)[None])
+        drawn = add_group_rows(final, group, images, Ks, T_cw, instances,
+                               [x.T_world_obj for x in instances],
+                               [x.masks for x in instances], elapsed, by_id, refined=refining)
+        if refining:  # outside the timed part: the before-refinement files
+            before = [x.T_world_obj_initial for x in instances]
+            add_group_rows(initial, group, images, Ks, T_cw, instances, before,
+                           silhouettes(instances, before, images, Ks, T_cw,
+                                       nets.pose_renderer(objects)),
+                           elapsed, by_id, refined=False)
         caption = None
-        if not dets:
-            caption = empty_caption(args.score_threshold, dets.best_score)
-            empty.append(dets.best_score)
+        if not instances:
+            caption = empty_caption_of(instances, args.score_threshold, multiview)
+            empty.append(instances.best_score)
             if len(empty) <= MAX_EMPTY_LINES:
-                tqdm.write(f"scene {scene_id} image {im_id}: {caption}")
-        for d, m in zip(dets, masks):
-            poses.append(bop.PoseEstimate(scene_id, im_id, d.obj_id, d.score, d.pose[:3, :3],
-                                          d.pose[:3, 3], elapsed))
-            # Detections are amodal; BOP's 2D ground truth lies inside the image.
-            x0, y0, x1, y1 = np.clip(d.box, 0, [image.shape[1], image.shape[0]] * 2).tolist()
-            dets2d.append(bop.Detection2D(scene_id, im_id, d.obj_id, d.score,
-                                          (x0, y0, x1 - x0, y1 - y0), bop.mask_to_rle(m), elapsed))
-        if n < args.overlays:
-            (args.out / "overlays").mkdir(exist_ok=True)
-            shown = [(d, m) for d, m in zip(dets, masks) if d.score >= overlay_threshold]
-            if dets and not shown:
-                caption = empty_caption(overlay_threshold, dets[0].score)
-            canvas = draw_detections(image, [d for d, _ in shown], [m for _, m in shown],
-                                     caption=caption)
-            cv2.imwrite(str(args.out / "overlays" / f"{scene_id:06d}_{im_id:06d}.png"),
-                        cv2.cvtColor(canvas, cv2.COLOR_RGB2BGR))
-    stem = f"{args.method}_{ds.name}-{args.split}"
-    csv_path, json_path = args.out / f"{stem}.csv", args.out / f"{stem}.json"
-    bop.write_pose_results(csv_path, poses)
-    bop.write_detection_results(json_path, dets2d)
-    if empty:
-        print(f"{len(empty)} of {len(images)} images had 0 detections above threshold "
-              f"{args.score_threshold:g} (best score among them {max(empty):.3f})")
-    print(f"wrote {len(poses)} estimates for {len(images)} images: {csv_path}, {json_path}")
-    summary = {"csv": str(csv_path), "json": str(json_path), "num_estimates": len(poses)}
-    if args.evaluate:
-        from threept_jax.eval import evaluate_results_file
+                names = ", ".join(str(v.im_id) for v in group)
+                tqdm.write(f"scene {group[0].scene_id} image{'s' * multiview} {names}: {caption}")
+        for view, image, rows in zip(group, images, drawn):
+            if shown >= args.overlays:
+                break
+            shown += 1
+            _draw(args.out / "overlays" / f"{view.scene_id:06d}_{view.im_id:06d}.png", image,
+                  rows, instances, overlay_threshold, caption)
 
-        targets = None if args.targets == "all" else (
-            args.dataset_dir / f"test_targets_{args.targets}.json")
-        pose = evaluate_results_file(args.dataset_dir, csv_path, split=args.split,
-                                     targets_path=targets).to_json()
-        det2d = evaluate_results_file(args.dataset_dir, json_path, split=args.split,
-                                      targets_path=targets)
-        summary.update(pose=pose, detection=det2d)
-        print(json.dumps({"6d": {k: v for k, v in pose.items() if k != "per_object"},
-                          "2d": det2d}, indent=1))
+    stem = f"{args.method}_{ds.name}-{args.split}"
+    csv_path, json_path = final.write(args.out, stem)
+    if empty:
+        print(f"{len(empty)} of {len(groups)} {what} had 0 detections above threshold "
+              f"{args.score_threshold:g} (best score among them {max(empty):.3f})")
+    print(f"wrote {len(final.poses)} estimates for {len(groups)} {what}: {csv_path}, {json_path}")
+    summary = {"csv": str(csv_path), "json": str(json_path), "num_estimates": len(final.poses)}
+    initial_paths = None
+    if refining:
+        initial_paths = initial.write(args.out, f"{args.method}-initial_{ds.name}-{args.split}")
+        print(f"before refinement: {initial_paths[0]}, {initial_paths[1]}")
+        summary.update(csv_initial=str(initial_paths[0]), json_initial=str(initial_paths[1]))
+    if args.evaluate:
+        targets = evaluation_targets(args, ds, groups)
+        summary.update(evaluate(args, csv_path, json_path, targets))
+        if initial_paths is not None:
+            summary.update({f"{k}_initial": v for k, v in
+                            evaluate(args, *initial_paths, targets).items()})
+        _print_scores(summary)
+    return summary
+
+
+def empty_caption_of(instances, threshold: float, multiview: bool) -> str:
+    """What an empty scene's overlay and console line say."""
+    from infer.visualize import empty_caption
+
+    if multiview and instances.best_score > threshold:
+        return (f"0 instances: no detection above threshold {threshold:g} was matched across "
+                "enough views")
+    return empty_caption(threshold, instances.best_score)
+
+
+def evaluation_targets(args, ds, groups) -> pathlib.Path | None:
+    """The targets file the evaluation uses: the run's ``--targets`` file; for a multi-view run
+    ``test_targets_bop24.json`` when the dataset has one, else a file listing every image of
+    the groups that were run (written to ``--out``); None (the evaluator's default) for
+    ``--targets all``."""
+    from threept_jax.data import bop
+
+    if args.targets == "all":
+        return None
+    if args.targets != "multiview":
+        return args.dataset_dir / f"test_targets_{args.targets}.json"
+    bop24 = args.dataset_dir / "test_targets_bop24.json"
+    if bop24.is_file():
+        return bop24
+    path = args.out / f"test_targets_multiview-views_{ds.name}-{args.split}.json"
+    bop.write_targets(path, [bop.Target(v.scene_id, v.im_id) for g in groups for v in g])
+    return path
+
+
+def evaluate(args, csv_path, json_path, targets) -> dict:
+    """{"pose": 6D scores (``PoseScores.to_json()``), "detection": 2D {"bbox", "segm"}}."""
+    from threept_jax.eval import evaluate_results_file
+
+    pose = evaluate_results_file(args.dataset_dir, csv_path, split=args.split,
+                                 targets_path=targets).to_json()
+    out = {"pose": pose}
+    if json_path is not None:
+        out["detection"] = evaluate_results_file(args.dataset_dir, json_path, split=args.split,
+                                                 targets_path=targets)
+    return out
+
+
+def _print_scores(summary: dict) -> None:
+    shown = {}
+    for suffix in ("", "_initial"):
+        if f"pose{suffix}" in summary:
+            shown[f"6d{suffix}"] = {k: v for k, v in summary[f"pose{suffix}"].items()
+                                    if k != "per_object"}
+        if f"detection{suffix}" in summary:
+            shown[f"2d{suffix}"] = summary[f"detection{suffix}"]
+    print(json.dumps(shown, indent=1))
+
+
+# --------------------------------------------------------------------------- --refine-only
+
+
+def refine_only_inputs(args, ds) -> tuple[dict, dict]:
+    """({(scene_id, im_id): [PoseEstimate]} in file order, {obj_id: ObjectModel}) of
+    ``--refine-only``, checked before any model loads: a CSV that does not read, objects
+    without a mesh and images the split lacks are errors naming the CSV."""
+    from threept_jax.data import bop
+
+    path = args.refine_only
+    estimates = bop.read_pose_results(path)
+    if args.scene_ids:
+        estimates = [e for e in estimates if e.scene_id in args.scene_ids]
+    if args.obj_ids:
+        estimates = [e for e in estimates if e.obj_id in args.obj_ids]
+    per_image: dict = {}
+    for e in estimates:
+        per_image.setdefault((e.scene_id, e.im_id), []).append(e)
+    per_image = dict(list(per_image.items())[: args.max_images])
+    if not per_image:
+        raise ValueError(f"{path} holds no estimates to refine (check --scene-ids, --obj-ids)")
+    models_dir = ds.models_dir(args.models_subdir)
+    models = ds.models(args.models_subdir)
+    wanted = sorted({e.obj_id for rows in per_image.values() for e in rows})
+    unknown = [k for k in wanted if k not in models]
+    if unknown:
+        raise ValueError(f"{path} has estimates of objects {unknown} that "
+                         f"{models_dir / 'models_info.json'} does not list")
+    missing = [k for k in wanted if models[k].path is None]
+    if missing:
+        paths = ", ".join(f"{k}: {models_dir / f'obj_{k:06d}.ply'}" for k in missing)
+        raise FileNotFoundError(f"{path} has estimates of objects {missing} without a mesh "
+                                f"({paths})")
+    split = ds.split(args.split)
+    for scene_id, im_id in per_image:
+        try:
+            scene = split.scene(scene_id)
+            if im_id not in scene.cameras:
+                raise FileNotFoundError(f"{scene._file('scene_camera')} has no image {im_id}")
+            scene.image_path(im_id)
+        except FileNotFoundError as e:
+            raise FileNotFoundError(f"{path} has estimates for scene {scene_id} image {im_id}, "
+                                    f"which {split.path} lacks: {e}") from None
+    return per_image, {k: models[k] for k in wanted}
+
+
+def method_of(path: pathlib.Path) -> str:
+    """The method name of a BOP results file ``METHOD_DATASET-SPLIT.csv``."""
+    return path.stem.split("_")[0]
+
+
+def run_refine_only(args) -> dict:
+    """``--refine-only RESULTS.csv``: every estimate of an image refined together by 3PT-R
+    (one view, camera frame) from its pose; writes ``{method}-3ptr_{ds}-{split}.csv`` and
+    ``.json`` (the refiner's masks, each pixel to the best-scored estimate claiming it). Scores
+    are kept; an image's time is its time in the input plus our refinement of it (-1 stays
+    unknown)."""
+    from infer.refine import refine_objects
+    from infer.scene import assign_pixels
+    from threept_jax.data import bop
+
+    ds = bop.BopDataset(args.dataset_dir)
+    per_image, models = refine_only_inputs(args, ds)
+    nets = load_models(args)
+    objects = refine_objects({k: m.path for k, m in models.items()})
+    by_id = {o.obj_id: o for o in objects}
+    split = ds.split(args.split)
+    args.out.mkdir(parents=True, exist_ok=True)
+    results = Results()
+    for n, ((scene_id, im_id), rows) in enumerate(
+            tqdm(per_image.items(), desc="images", unit="img", dynamic_ncols=True)):
+        scene = split.scene(scene_id)
+        image, K = _rgb(scene.image(im_id)), scene.cameras[im_id].K
+        rows = sorted(rows, key=lambda e: -e.score)  # masks: pixels to the best-scored first
+        start = time.perf_counter()
+        refined = refine([image], [Camera(K)], objects,
+                         [(e.obj_id, e.T_cam_obj) for e in rows], nets)
+        elapsed = time.perf_counter() - start
+        assign_pixels(refined)
+        taken = rows[0].time
+        total = taken + elapsed if taken >= 0 else -1.0
+        drawn = []
+        for e, r in zip(rows, refined):
+            T = r.T_world_obj
+            box = _mask_box(r.masks[0])
+            if box is None:  # an empty mask keeps its row: the pose still counts for 6D
+                box = _projected_box(by_id[e.obj_id].mesh.vertices, T, K)
+            x0, y0, x1, y1 = _clip_box(box, image.shape[:2])
+            results.poses.append(bop.PoseEstimate(scene_id, im_id, e.obj_id, e.score,
+                                                  T[:3, :3], T[:3, 3], total))
+            results.dets2d.append(bop.Detection2D(scene_id, im_id, e.obj_id, e.score,
+                                                  (x0, y0, x1 - x0, y1 - y0),
+                                                  bop.mask_to_rle(r.masks[0]), total))
+            drawn.append((len(drawn), T, np.array([x0, y0, x1, y1]), r.masks[0]))
+        if n < args.overlays:
+            _draw(args.out / "overlays" / f"{scene_id:06d}_{im_id:06d}.png", image, drawn,
+                  rows, args.overlay_threshold or 0.0, None)
+    stem = f"{method_of(args.refine_only)}-3ptr_{ds.name}-{args.split}"
+    csv_path, json_path = results.write(args.out, stem)
+    print(f"refined {len(results.poses)} estimates of {len(per_image)} images: {csv_path}, "
+          f"{json_path}")
+    summary = {"csv": str(csv_path), "json": str(json_path), "num_estimates": len(results.poses)}
+    if args.evaluate:
+        targets = evaluation_targets(args, ds, [])
+        summary.update(evaluate(args, csv_path, json_path, targets))
+        summary["pose_initial"] = evaluate(args, args.refine_only, None, targets)["pose"]
+        _print_scores(summary)
     return summary

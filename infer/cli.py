@@ -71,8 +71,10 @@ def _step(text: str) -> str | int:
             f"must be best, latest or a step number >= 0, got {text!r}") from None
 
 
-def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--workdir", required=True, help="a detector training run (train/launch.py --workdir)")
+def _common(p: argparse.ArgumentParser, workdir_required: bool = True) -> None:
+    p.add_argument("--workdir", required=workdir_required,
+                   help="a detector training run (train/launch.py --workdir)"
+                   + ("" if workdir_required else "; required unless --refine-only"))
     p.add_argument("--step", type=_step, default="best",
                    help="checkpoint: best, latest or a step number")
     p.add_argument("--num-templates", type=_int_at_least(1), default=ONBOARD_TEMPLATES,
@@ -103,11 +105,26 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     b = sub.add_parser("bop", help="run on a BOP split, write BOP 6D CSV + 2D JSON",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    _common(b)
+    _common(b, workdir_required=False)
     b.add_argument("--dataset-dir", type=pathlib.Path, required=True)
     b.add_argument("--split", default="test")
-    b.add_argument("--targets", default="bop24", choices=("bop24", "bop19", "all"),
-                   help="which images: a test_targets file, or every image of the split")
+    b.add_argument("--targets", default="bop24", choices=("bop24", "bop19", "all", "multiview"),
+                   help="which images: a test_targets file, every image of the split, or "
+                        "multiview: the groups of test_targets_multiview_bop25.json, each group "
+                        "one multi-view run_scene (cameras from cam_R_w2c/cam_t_w2c); an "
+                        "instance is written to a view's rows when its centre projects inside "
+                        "that image in front of the camera; --max-images counts groups")
+    b.add_argument("--refiner", type=pathlib.Path, default=None, metavar="RUN",
+                   help="a 3PT-R training run (train/launch.py --config "
+                        "train/configs/refiner.py:tiny): refine every instance; the results "
+                        "hold the refined poses and the refiner's masks, and "
+                        "{method}-initial_* files the poses before refinement")
+    b.add_argument("--refiner-step", type=_step, default="best",
+                   help="refiner checkpoint: best, latest or a step number")
+    b.add_argument("--refine-only", type=pathlib.Path, default=None, metavar="RESULTS.csv",
+                   help="refine another method's BOP 6D results with --refiner (no detector): "
+                        "writes {its method}-3ptr_{dataset}-{split}.csv/.json, scores kept, "
+                        "time = its time + the refinement's")
     b.add_argument("--obj-ids", type=_int_at_least(0), nargs="*",
                    help="query only these objects (default: the targets' objects, or all)")
     b.add_argument("--scene-ids", type=_int_at_least(0), nargs="*", help="only these scenes")
@@ -144,12 +161,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def load_models(args):
-    """The run's models (``infer.load``) with the onboarding and compilation caches."""
+    """The run's models (``infer.load``: the detector of ``--workdir`` and, when the command has
+    one, the refiner of ``--refiner``) with the onboarding and compilation caches."""
     import jax
 
     jax.config.update("jax_compilation_cache_dir", str(args.cache_dir / "jax"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-    return load(args.workdir, args.step, cache_dir=args.cache_dir,
+    return load(args.workdir, args.step, refiner=getattr(args, "refiner", None),
+                refiner_step=getattr(args, "refiner_step", "best"), cache_dir=args.cache_dir,
                 num_templates=args.num_templates)
 
 
@@ -271,6 +290,18 @@ def main(argv: Sequence[str] | None = None):
     if args.depth_range is not None and args.depth_range[0] > args.depth_range[1]:
         parser.error(f"argument --depth-range: ZMIN must be <= ZMAX, got {args.depth_range[0]:g} "
                      f"{args.depth_range[1]:g}")
+    if args.command == "bop":
+        if args.refine_only is not None and args.refiner is None:
+            parser.error("--refine-only needs --refiner RUN (the 3PT-R run that refines)")
+        if args.refine_only is not None and args.workdir is not None:
+            parser.error("--refine-only refines another method's results without the detector: "
+                         "drop --workdir")
+        if args.refine_only is None and args.workdir is None:
+            parser.error("the following arguments are required: --workdir (or --refine-only "
+                         "RESULTS.csv with --refiner)")
+        if args.refine_only is not None and args.targets == "multiview":
+            parser.error("--refine-only refines single-view results (camera frame): drop "
+                         "--targets multiview")
     try:
         if args.command == "bop":
             from infer.bop_runner import run_bop

@@ -3,6 +3,7 @@ onboarded, a target without a mesh is named (id and expected file); an image wit
 detections says so. Models are faked: these tests stop where the networks would start."""
 
 import json
+import time
 
 import cv2
 import numpy as np
@@ -11,7 +12,7 @@ import trimesh
 
 from infer import bop_runner
 from infer.cli import main
-from infer.detect import Detections
+from infer.scene import Instance, Instances
 from threept_jax.data import bop
 from threept_jax.geometry.symmetry import Symmetries
 
@@ -92,21 +93,171 @@ def test_missing_mesh_message_names_the_file():
 
 
 def test_images_without_detections_are_reported(dataset, monkeypatch, capsys):
-    class FakeDetector:
-        def detect(self, image, K):
-            return Detections([], best_score=0.0517)
-
     class FakeNets:
+        refiner = None
+
         def onboard(self, meshes):
             return []
 
-        def scene_detector(self, objects, **options):
-            return FakeDetector()
-
     monkeypatch.setattr(bop_runner, "load_models", lambda args: FakeNets())
+    monkeypatch.setattr(bop_runner, "run_scene",
+                        lambda *a, **k: Instances([], best_score=0.0517))
     main(_argv(dataset, "--targets", "bop19"))
     out = capsys.readouterr().out
     assert "scene 1 image 0: 0 detections above threshold 0.1 (best score 0.052)" in out
     assert "1 of 1 images had 0 detections above threshold 0.1" in out
     overlay = cv2.imread(str(dataset / "out" / "overlays" / "000001_000000.png"))
     assert np.any(overlay != 90)  # the caption; the input is a flat grey
+
+
+# --------------------------------------------------------------------------- through run_scene
+# One module-scoped dataset and one pair of untrained tiny runs (detector, refiner): every test
+# below refines 3 instances of objects {1, 2} in one 64 x 96 view, so one compiled refinement
+# loop (one instance bin) serves the module.
+
+H, W = 64, 96
+K = np.array([[80.0, 0, 47.5], [0, 80.0, 31.5], [0, 0, 1]])
+SIZES = {1: (80.0, 40.0, 20.0), 2: (30.0, 30.0, 90.0)}
+
+
+def _rigid(R, t):
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def _look_at(centre, target):
+    """T_cam_world of a camera at ``centre`` (world, mm) looking at ``target`` (OpenCV axes)."""
+    z = np.asarray(target, float) - centre
+    z /= np.linalg.norm(z)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])  # rows: camera axes in the world
+    return _rigid(R, -R @ centre)
+
+
+#: World -> camera of images 0-3: two captures of two views each (multi-view groups (0, 1) and
+#: (2, 3)); the even views sit at the world origin.
+RIG = [np.eye(4), _look_at(np.array([300.0, 0, 100]), [0, 0, 600])] * 2
+
+
+@pytest.fixture(scope="module")
+def bop_setup(tmp_path_factory):
+    """(dataset root, detector run, refiner run, the runs loaded by infer.load)."""
+    import infer
+    from tests.fixtures.untrained_runs import untrained_runs
+
+    root = tmp_path_factory.mktemp("bop") / "ds"
+    models = root / "models"
+    models.mkdir(parents=True)
+    info = {}
+    for k, size in SIZES.items():
+        trimesh.creation.box(size).export(models / f"obj_{k:06d}.ply")
+        info[str(k)] = {"diameter": float(np.linalg.norm(size)),
+                        **{f"min_{a}": -s / 2 for a, s in zip("xyz", size)},
+                        **{f"size_{a}": s for a, s in zip("xyz", size)}}
+    info["3"] = dict(info["1"])  # listed, no mesh
+    (models / "models_info.json").write_text(json.dumps(info))
+    rng = np.random.default_rng(0)
+    T_world_gt = _rigid(np.eye(3), [0.0, 0.0, 600.0])
+    with bop.BopSceneWriter(root / "test" / "000001") as writer:
+        for im_id, T_cw in enumerate(RIG):
+            mask = np.zeros((1, H, W), bool)
+            mask[0, 20:44, 30:66] = True
+            writer.add_image(im_id, bop.Camera(K, T_cam_world=T_cw),
+                             rng.integers(0, 256, (H, W, 3), dtype=np.uint8),
+                             [bop.GtInstance(1, T_cw @ T_world_gt)], mask, mask)
+    (root / "test_targets_multiview_bop25.json").write_text(json.dumps(
+        [{"scene_id": 1, "im_ids": [0, 1]}, {"scene_id": 1, "im_ids": [2, 3]}]))
+    detector, refiner = untrained_runs(tmp_path_factory.mktemp("runs"))
+    cache = tmp_path_factory.mktemp("cache")
+    loaded = infer.load(detector, refiner=refiner, cache_dir=cache, num_templates=48)
+    return root, detector, refiner, loaded
+
+
+def _run_argv(setup, out, *extra):
+    root, detector, refiner, _ = setup
+    return ["bop", "--workdir", str(detector), "--refiner", str(refiner), "--dataset-dir",
+            str(root), "--out", str(out), "--num-scales", "1", "--score-threshold", "0",
+            "--max-detections", "3", "--num-templates", "48", "--overlays", "1", "--obj-ids",
+            "1", "2", *extra]
+
+
+def _by_image(rows):
+    out = {}
+    for r in rows:
+        out.setdefault((r.scene_id, r.im_id), []).append(r)
+    return out
+
+
+def test_load_models_passes_the_refiner_run(monkeypatch, tmp_path):
+    from infer import cli
+
+    seen = {}
+    monkeypatch.setattr(cli, "load", lambda *a, **k: seen.update(args=a, **k))
+    args = cli.build_parser().parse_args(
+        ["bop", "--workdir", "d", "--refiner", "r", "--refiner-step", "7", "--dataset-dir", "x",
+         "--out", "o", "--cache-dir", str(tmp_path)])
+    cli.load_models(args)
+    assert seen["args"] == ("d", "best") and str(seen["refiner"]) == "r"
+    assert seen["refiner_step"] == 7
+
+
+def test_single_view_run_writes_refined_and_initial_results(bop_setup, tmp_path, monkeypatch):
+    import infer
+
+    root, _, _, models = bop_setup
+    assert models.refiner is not None and models.refine_settings.num_matches == 16
+    calls = []
+
+    def spy(*args, **kwargs):
+        start = time.perf_counter()
+        found = infer.run_scene(*args, **kwargs)
+        calls.append((args[0], found, time.perf_counter() - start))
+        return found
+
+    monkeypatch.setattr(bop_runner, "load_models", lambda args: models)
+    monkeypatch.setattr(bop_runner, "run_scene", spy)
+    summary = main(_run_argv(bop_setup, tmp_path, "--targets", "all", "--max-images", "2",
+                             "--evaluate"))
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == ["overlays", "threept-initial_ds-test.csv", "threept-initial_ds-test.json",
+                     "threept_ds-test.csv", "threept_ds-test.json"]
+    final = _by_image(bop.read_pose_results(tmp_path / "threept_ds-test.csv"))
+    initial = _by_image(bop.read_pose_results(tmp_path / "threept-initial_ds-test.csv"))
+    final2d = _by_image(bop.read_detection_results(tmp_path / "threept_ds-test.json"))
+    initial2d = _by_image(bop.read_detection_results(tmp_path / "threept-initial_ds-test.json"))
+    assert sorted(final) == sorted(initial) == [(1, 0), (1, 1)] and len(calls) == 2
+    objects = models.onboard({k: root / "models" / f"obj_{k:06d}.ply" for k in SIZES})
+    times = []
+    moved = 0.0
+    for (images, found, inner), key in zip(calls, [(1, 0), (1, 1)]):
+        assert len(found) == 3  # --max-detections 3 at --score-threshold 0
+        plain = infer.run_scene(images, [K], objects, models, refine=False, num_scales=1,
+                                score_threshold=0.0, max_detections=3)
+        rows, before = final[key], initial[key]
+        for x, p, r, b, d, d0 in zip(found, plain, rows, before, final2d[key], initial2d[key]):
+            # Final: the refined pose and the refiner's mask; initial: object generation's
+            # pose and silhouette, as a run without the refiner gives them.
+            assert r.obj_id == b.obj_id == x.obj_id == p.obj_id
+            assert r.score == pytest.approx(x.score) and b.score == pytest.approx(p.score)
+            np.testing.assert_allclose(r.T_cam_obj, x.T_world_obj, atol=1e-4)
+            np.testing.assert_allclose(b.T_cam_obj, p.T_world_obj, atol=1e-4)
+            moved = max(moved, np.abs(r.T_cam_obj - b.T_cam_obj).max())
+            np.testing.assert_array_equal(bop.rle_to_mask(d.segmentation), x.masks[0])
+            np.testing.assert_array_equal(bop.rle_to_mask(d0.segmentation), p.masks[0])
+            ys, xs = np.nonzero(x.masks[0])
+            if len(xs):  # the refined box: the mask's tight box
+                assert d.bbox == pytest.approx((xs.min(), ys.min(), xs.max() + 1 - xs.min(),
+                                                ys.max() + 1 - ys.min()))
+            box = np.clip(p.boxes[0], 0, [W, H, W, H])  # the initial box: the detection's
+            assert d0.bbox == pytest.approx((*box[:2], *(box[2:] - box[:2])), abs=1e-4)
+        # One time per image, on every row of both files: its run_scene call's wall time.
+        assert len({r.time for r in rows + before + final2d[key] + initial2d[key]}) == 1
+        assert rows[0].time >= inner
+        times.append(rows[0].time)
+    assert moved > 1e-3 and times[0] != times[1]
+    for key in ("pose", "detection", "pose_initial", "detection_initial"):
+        assert key in summary
+    assert {"ap", "ap_mssd", "ap_mspd"} <= set(summary["pose"])
+    assert {"bbox", "segm"} <= set(summary["detection_initial"])
