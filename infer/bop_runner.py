@@ -224,7 +224,7 @@ def silhouettes(instances, poses, images, Ks, T_cam_world, renderer) -> list[dic
     out = [{} for _ in instances]
     for v, (image, K) in enumerate(zip(images, Ks)):
         posed = [Detection(x.obj_id, np.zeros(4, np.float32), x.score,
-                           (T_cam_world[v] @ np.asarray(T, np.float32))[None],
+                           (T_cam_world[v] @ T).astype(np.float32)[None],
                            x.hypothesis_scores[:1], np.zeros(0, np.float32))
                  for x, T in zip(instances, poses)]
         for m, mask in zip(out, detection_masks(posed, np.asarray(K, np.float32),
@@ -278,8 +278,7 @@ def run_bop(args) -> dict:
                               **detector_options(args))
         elapsed = time.perf_counter() - start
         Ks = [c.K for c in cams]
-        T_cw = (np.stack([c.T_cam_world for c in cams]).astype(np.float32) if multiview
-                else np.eye(4, dtype=np.float32)[None])
+        T_cw = np.stack([c.T_cam_world for c in cams]) if multiview else np.eye(4)[None]
         drawn = add_group_rows(final, group, images, Ks, T_cw, instances,
                                [x.T_world_obj for x in instances],
                                [x.masks for x in instances], elapsed, by_id, refined=refining)

@@ -143,9 +143,17 @@ RIG = [np.eye(4), _look_at(np.array([300.0, 0, 100]), [0, 0, 600])] * 2
 
 @pytest.fixture(scope="module")
 def bop_setup(tmp_path_factory):
-    """(dataset root, detector run, refiner run, the runs loaded by infer.load)."""
+    """(dataset root, detector run, refiner run, the runs loaded by infer.load).
+
+    The refinement loop runs 1 iteration on 2 hypotheses (a third of the default loop's
+    compile time): what is tested here is the runner around it, not the loop."""
+    import functools
+
     import infer
+    from infer import api
+    from infer.refine import SceneRefiner
     from tests.fixtures.untrained_runs import untrained_runs
+    from threept_jax.pipeline.refine_loop import LoopSettings
 
     root = tmp_path_factory.mktemp("bop") / "ds"
     models = root / "models"
@@ -172,7 +180,10 @@ def bop_setup(tmp_path_factory):
     detector, refiner = untrained_runs(tmp_path_factory.mktemp("runs"))
     cache = tmp_path_factory.mktemp("cache")
     loaded = infer.load(detector, refiner=refiner, cache_dir=cache, num_templates=48)
-    return root, detector, refiner, loaded
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(api, "SceneRefiner", functools.partial(
+            SceneRefiner, loop=LoopSettings(iterations=1), num_hypotheses=2))
+        yield root, detector, refiner, loaded
 
 
 def _run_argv(setup, out, *extra):
@@ -261,3 +272,71 @@ def test_single_view_run_writes_refined_and_initial_results(bop_setup, tmp_path,
         assert key in summary
     assert {"ap", "ap_mssd", "ap_mspd"} <= set(summary["pose"])
     assert {"bbox", "segm"} <= set(summary["detection_initial"])
+
+
+def _project(T_cam_world, p_world):
+    p = T_cam_world[:3, :3] @ p_world + T_cam_world[:3, 3]
+    u, v = (K @ p)[:2] / p[2]
+    return p[2] > 0 and -0.5 <= u < W - 0.5 and -0.5 <= v < H - 0.5
+
+
+def test_multiview_run_writes_each_view_in_its_camera_frame(bop_setup, tmp_path, monkeypatch):
+    """Groups (0, 1) and (2, 3) each make one run_scene call with the rig's cameras; a fixed
+    scene stands in for detection: instance 1 (object 1 at the rig's focus) lies in both views,
+    instance 2 (object 2, far left) in the even views only; its refined mask is empty there."""
+    from scipy.spatial.transform import Rotation
+
+    _, _, _, models = bop_setup
+    T_a = _rigid(Rotation.from_euler("xyz", [20, -30, 50], degrees=True).as_matrix(),
+                 [0.0, 0.0, 600.0])
+    T_b = _rigid(Rotation.from_euler("xyz", [-10, 60, 5], degrees=True).as_matrix(),
+                 [-150.0, 0.0, 300.0])
+    assert _project(RIG[0], T_a[:3, 3]) and _project(RIG[1], T_a[:3, 3])
+    assert _project(RIG[0], T_b[:3, 3]) and not _project(RIG[1], T_b[:3, 3])
+    nudge = _rigid(np.eye(3), [4.0, -3.0, 10.0])  # object generation's pose, before refining
+    full = np.zeros((H, W), bool)
+    full[10:30, 40:70] = True
+    calls = []
+
+    def fake_run_scene(images, cameras, objects, nets, **options):
+        calls.append(cameras)
+        a = Instance(1, 0.9, T_a.astype(np.float32), T_a[None], np.ones(1),
+                     {0: np.array([38.0, 8.0, 72.0, 33.0]), 1: np.array([-5.0, 2.0, 40, 30])},
+                     {0: full.copy(), 1: full.copy()}, (nudge @ T_a).astype(np.float32), 1.5)
+        b = Instance(2, 0.4, T_b.astype(np.float32), T_b[None], np.ones(1),
+                     {0: np.array([1.0, 10.0, 30.0, 50.0])},
+                     {0: np.zeros((H, W), bool), 1: full.copy()},
+                     (nudge @ T_b).astype(np.float32), -2.0)
+        return Instances([a, b], best_score=0.9)
+
+    monkeypatch.setattr(bop_runner, "load_models", lambda args: models)
+    monkeypatch.setattr(bop_runner, "run_scene", fake_run_scene)
+    summary = main(_run_argv(bop_setup, tmp_path, "--targets", "multiview", "--evaluate"))
+    assert len(calls) == 2
+    for cams, ids in zip(calls, [(0, 1), (2, 3)]):
+        for cam, im_id in zip(cams, ids):
+            np.testing.assert_allclose(cam.K, K)
+            np.testing.assert_allclose(cam.T_cam_world, RIG[im_id], atol=1e-12)
+    for stem, world in (("threept", {1: T_a, 2: T_b}),
+                        ("threept-initial", {1: nudge @ T_a, 2: nudge @ T_b})):
+        rows = _by_image(bop.read_pose_results(tmp_path / f"{stem}_ds-test.csv"))
+        dets = _by_image(bop.read_detection_results(tmp_path / f"{stem}_ds-test.json"))
+        assert sorted(rows) == [(1, 0), (1, 1), (1, 2), (1, 3)]
+        for (_, im_id), got in rows.items():
+            assert [r.obj_id for r in got] == ([1, 2] if im_id % 2 == 0 else [1])
+            assert len({r.time for r in got + rows[(1, im_id ^ 1)]}) == 1  # the group's time
+            for r in got:  # float64 reference: world -> this view's camera
+                want = RIG[im_id] @ np.float32(world[r.obj_id]).astype(np.float64)
+                np.testing.assert_allclose(r.T_cam_obj, want, atol=1e-9)
+                assert r.score == pytest.approx({1: 0.9, 2: 0.4}[r.obj_id])
+        if stem == "threept":
+            a0, b0 = dets[(1, 0)]
+            assert a0.bbox == pytest.approx((40, 10, 30, 20))  # the refiner mask's box
+            assert b0.bbox == pytest.approx((1, 10, 29, 40))  # empty mask: the detection box
+            assert not bop.rle_to_mask(b0.segmentation).any()
+            (a1,) = dets[(1, 1)]
+            assert a1.bbox == pytest.approx((40, 10, 30, 20))
+    targets = tmp_path / "test_targets_multiview-views_ds-test.json"
+    assert [(t.scene_id, t.im_id) for t in bop.load_targets(targets)] == [
+        (1, 0), (1, 1), (1, 2), (1, 3)]
+    assert {"pose", "detection", "pose_initial", "detection_initial"} <= set(summary)
