@@ -14,6 +14,7 @@ after. ``--refine-only RESULTS.csv`` refines another method's 6D results instead
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import pathlib
 import time
@@ -103,16 +104,13 @@ def select_groups_and_objects(args, ds) -> tuple[list[tuple[View, ...]], dict]:
     return groups, {k: models[k] for k in sorted(wanted)}
 
 
-def _scene(ds, split_name: str, view: View):
-    return ds.split(split_name, view.sensor).scene(view.scene_id)
-
-
-def group_cameras(ds, split_name: str, group: tuple[View, ...], multiview: bool) -> list[Camera]:
+def group_cameras(splits, group: tuple[View, ...], multiview: bool) -> list[Camera]:
     """The run_scene cameras of a group: K alone for one view (the world frame is the camera
-    frame), K and T_cam_world (``cam_R_w2c``/``cam_t_w2c``) for a multi-view group."""
+    frame), K and T_cam_world (``cam_R_w2c``/``cam_t_w2c``) for a multi-view group.
+    ``splits``: sensor -> BopSplit."""
     cams = []
     for view in group:
-        scene = _scene(ds, split_name, view)
+        scene = splits(view.sensor).scene(view.scene_id)
         where = f"{scene._file('scene_camera')} image {view.im_id}"
         if view.im_id not in scene.cameras:
             raise FileNotFoundError(f"{where} does not exist (the targets name it)")
@@ -257,7 +255,8 @@ def run_bop(args) -> dict:
     ds = bop.BopDataset(args.dataset_dir)
     groups, models = select_groups_and_objects(args, ds)
     multiview = args.targets == "multiview"
-    cameras = [group_cameras(ds, args.split, g, multiview) for g in groups]
+    splits = functools.cache(lambda sensor: ds.split(args.split, sensor))  # scenes read once
+    cameras = [group_cameras(splits, g, multiview) for g in groups]
 
     nets = load_models(args)
     objects = nets.onboard({k: m.path for k, m in models.items()})
@@ -272,7 +271,7 @@ def run_bop(args) -> dict:
     shown = 0
     for group, cams in zip(tqdm(groups, desc=what, unit=what[:-1], dynamic_ncols=True),
                            cameras):
-        images = [_rgb(_scene(ds, args.split, v).image(v.im_id)) for v in group]
+        images = [_rgb(splits(v.sensor).scene(v.scene_id).image(v.im_id)) for v in group]
         start = time.perf_counter()
         instances = run_scene(images, cams, objects, nets, with_masks=True,
                               **detector_options(args))

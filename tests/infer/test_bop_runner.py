@@ -340,3 +340,102 @@ def test_multiview_run_writes_each_view_in_its_camera_frame(bop_setup, tmp_path,
     assert [(t.scene_id, t.im_id) for t in bop.load_targets(targets)] == [
         (1, 0), (1, 1), (1, 2), (1, 3)]
     assert {"pose", "detection", "pose_initial", "detection_initial"} <= set(summary)
+
+
+def _csv_row(scene_id, im_id, obj_id, score, T, time_s):
+    R = " ".join(repr(float(v)) for v in T[:3, :3].ravel())
+    t = " ".join(repr(float(v)) for v in T[:3, 3])
+    return f"{scene_id},{im_id},{obj_id},{score},{R},{t},{time_s}"
+
+
+def test_refine_only_refines_every_row_keeping_scores_and_adding_time(bop_setup, tmp_path,
+                                                                       monkeypatch):
+    from scipy.spatial.transform import Rotation
+
+    import infer
+
+    root, _, refiner, models = bop_setup
+    rot = Rotation.from_euler("xyz", [[10, 20, 30], [80, -5, 0], [0, 0, 120]],
+                              degrees=True).as_matrix()
+    given = {(0, 1, 0.8): _rigid(rot[0], [-20.0, 5.0, 600.0]),
+             (0, 2, 0.6): _rigid(rot[1], [25.0, -10.0, 650.0]),
+             (0, 1, 0.3): _rigid(rot[2], [0.0, 15.0, 550.0]),
+             (1, 2, 0.7): _rigid(rot[2], [10.0, 0.0, 620.0]),
+             (1, 1, 0.5): _rigid(rot[0], [-30.0, -5.0, 700.0]),
+             (1, 2, 0.2): _rigid(rot[1], [20.0, 10.0, 580.0])}
+    # Not sorted by score within an image: the output is, best first.
+    order = [(0, 1, 0.3), (0, 1, 0.8), (0, 2, 0.6), (1, 2, 0.2), (1, 2, 0.7), (1, 1, 0.5)]
+    times = {0: 0.25, 1: -1}
+    path = tmp_path / "other_ds-test.csv"
+    path.write_text("scene_id,im_id,obj_id,score,R,t,time\n" + "\n".join(
+        _csv_row(1, k[0], k[1], k[2], given[k], times[k[0]]) for k in order) + "\n")
+    calls = []
+
+    def spy(images, cameras, objects, initial_poses, nets):
+        start = time.perf_counter()
+        out = infer.refine(images, cameras, objects, initial_poses, nets)
+        calls.append((initial_poses, out, time.perf_counter() - start))
+        return out
+
+    monkeypatch.setattr(bop_runner, "load_models", lambda args: models)
+    monkeypatch.setattr(bop_runner, "refine", spy)
+    out = tmp_path / "out"
+    main(["bop", "--refine-only", str(path), "--refiner", str(refiner), "--dataset-dir",
+          str(root), "--out", str(out), "--overlays", "1"])
+    rows = _by_image(bop.read_pose_results(out / "other-3ptr_ds-test.csv"))
+    dets = _by_image(bop.read_detection_results(out / "other-3ptr_ds-test.json"))
+    assert sorted(rows) == [(1, 0), (1, 1)] and len(calls) == 2
+    moved = 0.0
+    for (im_id, want_time), (initial_poses, refined, inner) in zip(times.items(), calls):
+        got, got2d = rows[(1, im_id)], dets[(1, im_id)]
+        keys = sorted((k for k in given if k[0] == im_id), key=lambda k: -k[2])
+        assert [(r.obj_id, r.score) for r in got] == [(k[1], k[2]) for k in keys]
+        for k, (obj_id, T0), r, d, x in zip(keys, initial_poses, got, got2d, refined):
+            assert obj_id == k[1]  # every estimate refined, from its own pose
+            np.testing.assert_allclose(T0, given[k], atol=1e-12)
+            np.testing.assert_allclose(x.history[0], given[k], atol=1e-3)
+            np.testing.assert_allclose(r.T_cam_obj, x.T_world_obj, atol=1e-9)
+            moved = max(moved, np.abs(r.T_cam_obj - given[k]).max())
+            np.testing.assert_array_equal(bop.rle_to_mask(d.segmentation), x.masks[0])
+        assert sum(x.masks[0].astype(int) for x in refined).max() <= 1  # pixels to one each
+        assert len({r.time for r in got + got2d}) == 1
+        if want_time < 0:
+            assert got[0].time == -1  # unknown stays unknown
+        else:
+            assert got[0].time >= want_time + inner
+    assert moved > 1e-3
+
+
+def test_refine_only_input_errors_exit_2_naming_the_file(dataset, monkeypatch, capsys):
+    def no_load(args):
+        raise AssertionError("models loaded before the inputs were checked")
+
+    monkeypatch.setattr(bop_runner, "load_models", no_load)
+    csv = dataset / "m_ds-test.csv"
+    base = ["bop", "--refiner", str(dataset / "ref"), "--dataset-dir", str(dataset), "--out",
+            str(dataset / "out"), "--refine-only", str(csv)]
+
+    def fails(argv, *parts):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and "Traceback" not in err, err
+        for part in parts:
+            assert part in err, err
+
+    fails(base, "error:", str(csv), "does not exist")
+    csv.write_text("1,0,1,0.5,not numbers\n")
+    fails(base, "error:", f"{csv}:1")
+    T = _rigid(np.eye(3), [0.0, 0.0, 500.0])
+    csv.write_text(_csv_row(1, 0, 3, 0.5, T, 0.1) + "\n")
+    fails(base, "error:", str(csv), "objects [3] without a mesh",
+          str(dataset / "models" / "obj_000003.ply"))
+    csv.write_text(_csv_row(1, 0, 1, 0.5, T, 0.1) + "\n" + _csv_row(1, 5, 2, 0.5, T, 0.1) + "\n")
+    fails(base, "error:", str(csv), "scene 1 image 5")
+    csv.write_text(_csv_row(2, 0, 1, 0.5, T, 0.1) + "\n")
+    fails(base, "error:", str(csv), "scene 2 image 0")
+    # The options: --refine-only needs --refiner and no detector; a run needs one.
+    fails([a for a in base if a not in ("--refiner", str(dataset / "ref"))],
+          "--refine-only needs --refiner")
+    fails(base + ["--workdir", str(dataset)], "drop --workdir")
+    fails(base[:1] + base[3:7], "required: --workdir")
