@@ -111,9 +111,9 @@ def group_cameras(splits, group: tuple[View, ...], multiview: bool) -> list[Came
     cams = []
     for view in group:
         scene = splits(view.sensor).scene(view.scene_id)
-        where = f"{scene._file('scene_camera')} image {view.im_id}"
+        where = f"scene {view.scene_id} image {view.im_id} ({scene.path})"
         if view.im_id not in scene.cameras:
-            raise FileNotFoundError(f"{where} does not exist (the targets name it)")
+            raise FileNotFoundError(f"{where} has no camera entry (the targets name it)")
         cam = scene.cameras[view.im_id]
         if multiview and cam.T_cam_world is None:
             raise ValueError(f"{where} has no cam_R_w2c/cam_t_w2c: a multi-view group needs "
@@ -334,16 +334,18 @@ def empty_caption_of(instances, threshold: float, multiview: bool) -> str:
 
 
 def evaluation_targets(args, ds, groups) -> pathlib.Path | None:
-    """The targets file the evaluation uses: the run's ``--targets`` file; for a multi-view run
-    ``test_targets_bop24.json`` when the dataset has one, else a file listing every image of
-    the groups that were run (written to ``--out``); None (the evaluator's default) for
+    """The targets file the evaluation uses: the run's ``--targets`` file (when it exists:
+    ``--refine-only`` does not need one); for a multi-view run ``test_targets_bop24.json`` when
+    the dataset has one, else a file listing every image of the groups that were run (written
+    to ``--out``); None (the evaluator's default: the BOP24, BOP19 or ground-truth images) for
     ``--targets all``."""
     from threept_jax.data import bop
 
     if args.targets == "all":
         return None
     if args.targets != "multiview":
-        return args.dataset_dir / f"test_targets_{args.targets}.json"
+        path = args.dataset_dir / f"test_targets_{args.targets}.json"
+        return path if path.is_file() else None
     bop24 = args.dataset_dir / "test_targets_bop24.json"
     if bop24.is_file():
         return bop24
@@ -414,7 +416,7 @@ def refine_only_inputs(args, ds) -> tuple[dict, dict]:
         try:
             scene = split.scene(scene_id)
             if im_id not in scene.cameras:
-                raise FileNotFoundError(f"{scene._file('scene_camera')} has no image {im_id}")
+                raise FileNotFoundError(f"its cameras list no image {im_id}")
             scene.image_path(im_id)
         except FileNotFoundError as e:
             raise FileNotFoundError(f"{path} has estimates for scene {scene_id} image {im_id}, "

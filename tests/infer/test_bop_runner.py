@@ -380,8 +380,10 @@ def test_refine_only_refines_every_row_keeping_scores_and_adding_time(bop_setup,
     monkeypatch.setattr(bop_runner, "load_models", lambda args: models)
     monkeypatch.setattr(bop_runner, "refine", spy)
     out = tmp_path / "out"
-    main(["bop", "--refine-only", str(path), "--refiner", str(refiner), "--dataset-dir",
-          str(root), "--out", str(out), "--overlays", "1"])
+    summary = main(["bop", "--refine-only", str(path), "--refiner", str(refiner),
+                    "--dataset-dir", str(root), "--out", str(out), "--overlays", "1",
+                    "--evaluate"])  # no targets file: the evaluator's ground-truth images
+    assert {"pose", "detection", "pose_initial"} <= set(summary)  # pose_initial: the input's
     rows = _by_image(bop.read_pose_results(out / "other-3ptr_ds-test.csv"))
     dets = _by_image(bop.read_detection_results(out / "other-3ptr_ds-test.json"))
     assert sorted(rows) == [(1, 0), (1, 1)] and len(calls) == 2
