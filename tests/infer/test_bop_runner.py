@@ -152,7 +152,7 @@ def bop_setup(tmp_path_factory):
     import infer
     from infer import api
     from infer.refine import SceneRefiner
-    from tests.fixtures.untrained_runs import untrained_runs
+    from tests.fixtures.run_dirs import tiny_detector_run, tiny_refiner_run
     from threept_jax.pipeline.refine_loop import LoopSettings
 
     root = tmp_path_factory.mktemp("bop") / "ds"
@@ -177,7 +177,8 @@ def bop_setup(tmp_path_factory):
                              [bop.GtInstance(1, T_cw @ T_world_gt)], mask, mask)
     (root / "test_targets_multiview_bop25.json").write_text(json.dumps(
         [{"scene_id": 1, "im_ids": [0, 1]}, {"scene_id": 1, "im_ids": [2, 3]}]))
-    detector, refiner = untrained_runs(tmp_path_factory.mktemp("runs"))
+    runs = tmp_path_factory.mktemp("runs")
+    detector, refiner = tiny_detector_run(runs / "detector"), tiny_refiner_run(runs / "refiner")
     cache = tmp_path_factory.mktemp("cache")
     loaded = infer.load(detector, refiner=refiner, cache_dir=cache, num_templates=48)
     with pytest.MonkeyPatch.context() as patch:
