@@ -71,10 +71,12 @@ def _step(text: str) -> str | int:
             f"must be best, latest or a step number >= 0, got {text!r}") from None
 
 
-def _common(p: argparse.ArgumentParser, workdir_required: bool = True) -> None:
-    p.add_argument("--workdir", required=workdir_required,
+def _common(p: argparse.ArgumentParser, workdir_when: str | None = None) -> None:
+    """The options every subcommand shares. ``workdir_when``: when the detector run is optional,
+    the help's words for when it is needed (``--workdir`` is required otherwise)."""
+    p.add_argument("--workdir", required=workdir_when is None,
                    help="a detector training run (train/launch.py --workdir)"
-                   + ("" if workdir_required else "; required unless --refine-only"))
+                   + ("" if workdir_when is None else f"; needed {workdir_when}"))
     p.add_argument("--step", type=_step, default="best",
                    help="checkpoint: best, latest or a step number")
     p.add_argument("--num-templates", type=_int_at_least(1), default=ONBOARD_TEMPLATES,
@@ -99,13 +101,22 @@ def _common(p: argparse.ArgumentParser, workdir_required: bool = True) -> None:
                    help="overlay PNGs written (0: none)")
 
 
+def refiner_options(p: argparse.ArgumentParser, what: str, required: bool = False) -> None:
+    """``--refiner RUN`` (``what`` it does for the subcommand) and ``--refiner-step``."""
+    p.add_argument("--refiner", type=pathlib.Path, required=required, default=None,
+                   metavar="RUN", help="a 3PT-R training run (train/launch.py --config "
+                                       f"train/configs/refiner.py:tiny): {what}")
+    p.add_argument("--refiner-step", type=_step, default="best",
+                   help="refiner checkpoint: best, latest or a step number")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m infer", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     b = sub.add_parser("bop", help="run on a BOP split, write BOP 6D CSV + 2D JSON",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    _common(b, workdir_required=False)
+    _common(b, workdir_when="unless --refine-only")
     b.add_argument("--dataset-dir", type=pathlib.Path, required=True)
     b.add_argument("--split", default="test")
     b.add_argument("--targets", default="bop24", choices=("bop24", "bop19", "all", "multiview"),
@@ -114,13 +125,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "one multi-view run_scene (cameras from cam_R_w2c/cam_t_w2c); an "
                         "instance is written to a view's rows when its centre projects inside "
                         "that image in front of the camera; --max-images counts groups")
-    b.add_argument("--refiner", type=pathlib.Path, default=None, metavar="RUN",
-                   help="a 3PT-R training run (train/launch.py --config "
-                        "train/configs/refiner.py:tiny): refine every instance; the results "
-                        "hold the refined poses and the refiner's masks, and "
-                        "{method}-initial_* files the poses before refinement")
-    b.add_argument("--refiner-step", type=_step, default="best",
-                   help="refiner checkpoint: best, latest or a step number")
+    refiner_options(b, "refine every instance; the results hold the refined poses and the "
+                       "refiner's masks, and {method}-initial_* files the poses before "
+                       "refinement")
     b.add_argument("--refine-only", type=pathlib.Path, default=None, metavar="RESULTS.csv",
                    help="refine another method's BOP 6D results with --refiner (no detector): "
                         "writes {its method}-3ptr_{dataset}-{split}.csv/.json, scores kept, "

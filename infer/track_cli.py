@@ -33,16 +33,17 @@ from collections.abc import Iterator
 import cv2
 import numpy as np
 
-from infer.api import load, prepare_views, track
+from infer.api import prepare_views, track
 from infer.cli import (
     _cameras,
     _common,
     _int_at_least,
     _number_in,
     _read_rgb,
-    _step,
     detector_options,
+    load_models,
     parse_meshes,
+    refiner_options,
 )
 from threept_jax.geometry.validate import validate_rigid
 
@@ -52,20 +53,11 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
 def add_track_parser(sub) -> argparse.ArgumentParser:
     """Register ``track`` on the ``python -m infer`` subparsers ``sub``."""
-    # "resolve": the shared options of _common stay the images subcommand's, with --workdir
-    # made optional (the detector is only needed to detect) and --refiner required.
     p = sub.add_parser("track", help="track objects through image sequences or a video (3PT-R)",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-                       conflict_handler="resolve")
-    _common(p)
-    p.add_argument("--workdir", default=None,
-                   help="a detector training run: needed without --init (the first frame is "
-                        "detected) and for re-detection (--min-score, or nothing tracked)")
-    p.add_argument("--refiner", required=True, metavar="RUN",
-                   help="a 3PT-R training run (train/launch.py --config "
-                        "train/configs/refiner.py:tiny)")
-    p.add_argument("--refiner-step", type=_step, default="best",
-                   help="refiner checkpoint: best, latest or a step number")
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    _common(p, workdir_when="without --init (the first frame is detected) and for re-detection "
+                            "(--min-score, or nothing tracked)")
+    refiner_options(p, "refine every tracked object in every frame", required=True)
     p.add_argument("--mesh", action="append", required=True, metavar="ID=PATH",
                    help="an object to track (repeat): integer id and mesh file")
     p.add_argument("--units", default="mm", choices=("mm", "cm", "m", "in"),
@@ -173,17 +165,6 @@ def read_init(path: pathlib.Path, obj_ids) -> list[tuple[int, np.ndarray]]:
     return out
 
 
-def _load_models(args):
-    """The detector (when ``--workdir``) and refiner runs, with the onboarding and compilation
-    caches of ``--cache-dir`` (as ``infer.cli.load_models``)."""
-    import jax
-
-    jax.config.update("jax_compilation_cache_dir", str(args.cache_dir / "jax"))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-    return load(args.workdir, args.step, refiner=args.refiner, refiner_step=args.refiner_step,
-                cache_dir=args.cache_dir, num_templates=args.num_templates)
-
-
 def _overlay(images, cameras, Ks, objects, poses) -> list[np.ndarray]:
     """One overlay per view: each pose's refiner-mask contour and projected box."""
     from infer.detect import Detection
@@ -271,7 +252,7 @@ def run_track(args) -> dict:
                          "DETECTOR_RUN (to detect objects on the first frame)")
     if args.workdir is None and args.min_score is not None:
         raise ValueError("--min-score re-detects objects: it needs --workdir DETECTOR_RUN")
-    models = _load_models(args)
+    models = load_models(args)
     objects = (models.onboard(meshes, units=args.units) if models.detector is not None
                else refine_objects(meshes, units=args.units))
     min_score = -np.inf if args.min_score is None else args.min_score

@@ -7,6 +7,7 @@ Every run refines 3 or 4 instances in 64 x 96 frames: one instance bin, so one c
 refinement loop (shared by the module's runs) and one compiled detector serve the module.
 """
 
+import functools
 import json
 
 import cv2
@@ -18,8 +19,10 @@ import trimesh
 import infer
 from infer import api, track_cli
 from infer.cli import main
+from infer.refine import SceneRefiner
 from infer.scene import Instances
 from tests.fixtures.run_dirs import tiny_detector_run, tiny_refiner_run
+from threept_jax.pipeline.refine_loop import LoopSettings
 
 K = "90,90,47.5,31.5"  # fx,fy,cx,cy of the 64 x 96 frames
 HW = (64, 96)
@@ -54,14 +57,19 @@ def env(tmp_path_factory):
     init = root / "init.json"
     init.write_text(json.dumps([{"obj_id": o, "T_world_obj": T.tolist()} for o, T in INIT]))
     cache_dir = jax.config.jax_compilation_cache_dir
-    yield {"root": root, "frames": frames, "init": init, "memo": {}}
+    # The loop runs 1 iteration on 2 hypotheses (a third of the default loop's compile time):
+    # what is tested here is tracking around it, not the loop.
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(api, "SceneRefiner", functools.partial(
+            SceneRefiner, loop=LoopSettings(iterations=1), num_hypotheses=2))
+        yield {"root": root, "frames": frames, "init": init, "memo": {}}
     jax.config.update("jax_compilation_cache_dir", cache_dir)  # the CLI set it to ours
 
 
 @pytest.fixture
 def loads(env, monkeypatch):
     """The CLI's model loading, memoised per (detector run, refiner run) across the module."""
-    real, memo = track_cli._load_models, env["memo"]
+    real, memo = track_cli.load_models, env["memo"]
 
     def load(args):
         key = (args.workdir, str(args.refiner))
@@ -73,7 +81,7 @@ def loads(env, monkeypatch):
             memo[key]._scene_refiners = memo["refiners"]
         return memo[key]
 
-    monkeypatch.setattr(track_cli, "_load_models", load)
+    monkeypatch.setattr(track_cli, "load_models", load)
     return memo
 
 
@@ -178,7 +186,7 @@ def no_models(monkeypatch):
     def fail(args):
         raise AssertionError("bad input must be refused before the models are loaded")
 
-    monkeypatch.setattr(track_cli, "_load_models", fail)
+    monkeypatch.setattr(track_cli, "load_models", fail)
 
 
 def _fails(capsys, argv, match):
@@ -225,7 +233,7 @@ def test_bad_input_is_named_before_loading(env, no_models, tmp_path, capsys):
 
 def test_a_mesh_in_metres_names_the_units_flag(env, monkeypatch, tmp_path, capsys):
     trimesh.creation.box((0.08, 0.04, 0.02)).export(tmp_path / "metres.ply")
-    monkeypatch.setattr(track_cli, "_load_models",
+    monkeypatch.setattr(track_cli, "load_models",
                         lambda args: infer.Models(None, None, None, None))  # refiner only
     argv = _argv(env, "--frames", str(env["frames"]), "--K", K, "--init", str(env["init"]))
     argv[argv.index(f"1={env['root'] / 'plate.ply'}")] = f"1={tmp_path / 'metres.ply'}"
