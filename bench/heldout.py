@@ -45,6 +45,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import infer  # noqa: E402
+from infer.bop_runner import in_view  # noqa: E402
 from infer.refine import NUM_HYPOTHESES, RefineObject, SceneRefiner  # noqa: E402
 from infer.scene import Instance, assign_pixels  # noqa: E402
 from threept_jax.data import bop  # noqa: E402
@@ -74,13 +75,10 @@ class Rows:
                                           bop.mask_to_rle(mask), seconds))
 
 
-def in_view(T_cam_obj: np.ndarray, center: np.ndarray, K: np.ndarray, hw) -> bool:
-    """True when the object's centre lies in front of the camera and projects into the image."""
-    c = T_cam_obj[:3, :3] @ center + T_cam_obj[:3, 3]
-    if c[2] <= 0:
-        return False
-    u, v = (K @ c)[:2] / c[2]
-    return 0 <= u < hw[1] and 0 <= v < hw[0]
+def visible(T_cam_obj: np.ndarray, center: np.ndarray, K: np.ndarray, hw) -> bool:
+    """The rule of ``python -m infer bop``: the object's centre is in front of the camera and
+    projects into the image."""
+    return in_view(T_cam_obj[:3, :3] @ center + T_cam_obj[:3, 3], K, hw)
 
 
 def oracle_image(gt, meshes: dict, K: np.ndarray, hw) -> np.ndarray:
@@ -200,7 +198,7 @@ def main() -> None:
                     for x in instances:
                         for j, v in enumerate(views):
                             T = T_cw[j] @ x.T_world_obj
-                            if V == 1 or in_view(T, centers[x.obj_id], Ks[j], hw):
+                            if V == 1 or visible(T, centers[x.obj_id], Ks[j], hw):
                                 rows(name).add(group.scene_id, ids[v], x.obj_id, x.score, T,
                                                x.masks[j], seconds)
                 if args.no_diagnostic:
@@ -209,7 +207,7 @@ def main() -> None:
                 # first view of the call.
                 v0 = views[0]
                 gts = [(g, info[g.obj_id]) for g in scene.gt[ids[v0]]
-                       if in_view(g.T_cam_obj, centers[g.obj_id], Ks[0], hw)]
+                       if visible(g.T_cam_obj, centers[g.obj_id], Ks[0], hw)]
                 if not gts:
                     continue
                 T_wc0 = np.linalg.inv(T_cw[0])
@@ -232,7 +230,7 @@ def main() -> None:
                             mask = x.masks.get(j)
                             if mask is None:  # the initial diagnostic has no masks
                                 mask = np.zeros(hw, bool)
-                            if V == 1 or in_view(T, centers[x.obj_id], Ks[j], hw):
+                            if V == 1 or visible(T, centers[x.obj_id], Ks[j], hw):
                                 rows(f"diagnostic, GT init, {V} view{'s' * (V > 1)}: "
                                      f"{name}").add(group.scene_id, ids[v], x.obj_id, 1.0, T,
                                                     mask, 0.0)
