@@ -48,7 +48,8 @@ def zero_shot(out: pathlib.Path, workdir: pathlib.Path, test_scenes: int, seed: 
     args = adapt.parse_args(["--meshes", "procedural:5", "--seed", str(seed), "--workdir",
                              str(out), "--test-scenes", str(test_scenes)])
     adapt.generate(args, out / "data", sets=("val", "test"))
-    return adapt.test(workdir, out / "data", out, out / "cache", overlays=6, refiner=refiner)
+    return adapt.test(workdir, out / "data", out, out / "cache", overlays=6,
+                      instances=args.instances, refiner=refiner)
 
 
 def summary(name: str, figs: dict) -> list[str]:

@@ -26,11 +26,12 @@ that with our own data engine, in stages that each resume when the command is ru
    best checkpoint by the held-out MSSD recall after refinement on the val records.
 6. **Test**: the best detector checkpoint (by full-image AP50 on the val scenes) runs ``python
    -m infer bop`` on the val scenes, whose best-F1 score becomes the overlay threshold, then on
-   the test scenes: full images, every part queried, the ``MAX_DETECTIONS`` best detections of
-   an image whatever their score, refined by ``W/refiner`` when one was trained. Box AP / AP50
-   (COCO, BOP ignore rule), segmentation AP and BOP 6D AP and AP-mm -> ``W/report.json``
-   (:func:`figures`: with a refiner, before and after refinement); overlays (boxes and pose
-   contours, refined when refining, at least 640 px wide) under ``W/test/overlays``.
+   the test scenes: full images, every part queried, the best detections of an image whatever
+   their score (as many as a scene holds instances at most, :func:`max_detections`), refined
+   by ``W/refiner`` when one was trained. Box AP / AP50 (COCO, BOP ignore rule), segmentation
+   AP and BOP 6D AP and AP-mm -> ``W/report.json`` (:func:`figures`: with a refiner, before
+   and after refinement); overlays (boxes and pose contours, refined when refining, at least
+   640 px wide) under ``W/test/overlays``.
 
 ``--meshes`` takes what ``datagen.generate`` takes: BOP models folders, trees of mesh files
 (``--mesh-units`` when not mm), or ``procedural:N`` (N parts of ``--seed``; the demo's parts).
@@ -40,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import pathlib
 import tempfile
 import time
@@ -52,11 +54,6 @@ NUM_EVALS = 4
 #: Steps timed for the budget (after one compiling step and two warm-up steps).
 TIMED_STEPS = 8
 CONFIGS = ("tiny", "cpu", "small", "paper")
-#: Detections kept per test image whatever their score (AP ranks them); all are refined when
-#: refining. Scenes hold 8 instances on average (``--instances``), so 12 keeps every part
-#: visible in a typical image while refining 40% fewer instances than the 20 kept before:
-#: refinement costs about a second per image per 20 instances on 2 CPU cores.
-MAX_DETECTIONS = 12
 
 
 def _stage(text: str) -> float:
@@ -266,16 +263,28 @@ def train(config, steps: int, workdir: pathlib.Path) -> None:
 # --------------------------------------------------------------------------- stage 6
 
 
+def max_detections(instances: int) -> int:
+    """Detections kept per test image whatever their score (AP ranks them; every one is refined
+    when refining): the most instances a scene of ``--instances`` holds (datagen draws the
+    count uniformly in (1 +- spread) x ``instances``: 4 to 12 for the default 8). Fewer would
+    cap the recall; more only adds low-ranked false positives, each refined at a cost (about a
+    second per image per 20 instances on 2 CPU cores)."""
+    from datagen.scene import SceneConfig
+
+    return max(1, math.floor((1 + SceneConfig.instance_spread) * instances))
+
+
 def infer_bop(workdir: pathlib.Path, dataset: pathlib.Path, out: pathlib.Path, cache: pathlib.Path,
-              overlays: int = 0, overlay_threshold: float | None = None,
+              max_detections: int, overlays: int = 0, overlay_threshold: float | None = None,
               refiner: pathlib.Path | None = None) -> dict:
     """``python -m infer bop --evaluate`` of the best detector checkpoint of ``workdir`` (and
-    of ``refiner``'s best checkpoint when given) on ``dataset``'s ``val_pbr`` images."""
+    of ``refiner``'s best checkpoint when given) on ``dataset``'s ``val_pbr`` images, the
+    ``max_detections`` best detections of an image whatever their score."""
     from infer.cli import main as infer_main
 
     argv = ["bop", "--workdir", str(workdir), "--step", "best", "--dataset-dir", str(dataset),
             "--split", "val_pbr", "--targets", "all", "--evaluate", "--num-templates", "512",
-            "--score-threshold", "0", "--max-detections", str(MAX_DETECTIONS),
+            "--score-threshold", "0", "--max-detections", str(max_detections),
             "--out", str(out), "--overlays", str(overlays), "--cache-dir", str(cache)]
     if overlay_threshold is not None:
         argv += ["--overlay-threshold", f"{overlay_threshold:.6g}"]
@@ -331,15 +340,17 @@ def summary_lines(figs: dict) -> list[str]:
 
 
 def test(workdir: pathlib.Path, data: pathlib.Path, out: pathlib.Path, cache: pathlib.Path,
-         overlays: int, refiner: pathlib.Path | None = None) -> dict:
+         overlays: int, instances: int, refiner: pathlib.Path | None = None) -> dict:
     """The best checkpoint of ``workdir`` on ``data/val`` (whose best-F1 score becomes the
     overlay threshold; detection alone, no refinement) and on ``data/test``, refined by
-    ``refiner`` when given: figures, threshold and the overlays' folder."""
-    val = figures(infer_bop(workdir, data / "val", out / "val", cache))
+    ``refiner`` when given, scenes generated with ``--instances instances``: figures,
+    threshold and the overlays' folder."""
+    keep = max_detections(instances)
+    val = figures(infer_bop(workdir, data / "val", out / "val", cache, keep))
     threshold = val["box_f1_threshold"]
     print(f"   overlay threshold {threshold:.3f} (best F1 {val['box_f1']:.3f} on the val scenes)")
-    result = figures(infer_bop(workdir, data / "test", out / "test", cache, overlays=overlays,
-                               overlay_threshold=threshold, refiner=refiner))
+    result = figures(infer_bop(workdir, data / "test", out / "test", cache, keep,
+                               overlays=overlays, overlay_threshold=threshold, refiner=refiner))
     return {"test": result, "val": val, "overlay_threshold": threshold,
             "refiner": None if refiner is None else str(refiner),
             "overlays": str(out / "test" / "overlays")}
@@ -388,7 +399,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     start = _stage(f"{n}/{n} full-image test on new scenes -> {w / 'test'}"
                    + (f", refined by {refiner}" if refiner else ""))
-    report = test(w, data, w, cache, args.overlays, refiner=refiner)
+    report = test(w, data, w, cache, args.overlays, args.instances, refiner=refiner)
     minutes["test"] = _done(start) / 60
     report.update(steps=steps, config=configs["detector"].model.variant, minutes=minutes)
     if refiner:

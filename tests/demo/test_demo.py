@@ -29,7 +29,7 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
         return {"test": _figures(0.3, refined=True), "refiner": str(w / "refiner"),
                 "overlays": str(w / "test" / "overlays")}
 
-    def fake_test(workdir, data, out, cache, overlays, refiner=None):
+    def fake_test(workdir, data, out, cache, overlays, instances, refiner=None):
         calls["zero_shot"] = (workdir, refiner)
         # A worse "after" than "before" is reported as it is.
         return {"test": _figures(0.05, refined=refiner is not None),

@@ -81,12 +81,14 @@ def test_test_stage_refines_the_test_scenes_only(tmp_path, monkeypatch):
 
     monkeypatch.setattr(infer.cli, "main", fake_main)
     report = adapt.test(tmp_path / "w", tmp_path / "data", tmp_path / "w", tmp_path / "cache",
-                        overlays=2, refiner=tmp_path / "w" / "refiner")
+                        overlays=2, instances=6, refiner=tmp_path / "w" / "refiner")
     (val, test) = calls
     assert "--refiner" not in val  # the val scenes choose the overlay threshold: boxes alone
     i = test.index("--refiner")
     assert test[i + 1] == str(tmp_path / "w" / "refiner")
-    assert test[test.index("--max-detections") + 1] == str(adapt.MAX_DETECTIONS)
+    # Scenes of --instances 6 hold 3 to 9 instances (datagen's spread 0.5).
+    assert val[val.index("--max-detections") + 1] == test[test.index("--max-detections") + 1] \
+        == "9"
     assert report["overlay_threshold"] == pytest.approx(0.27)  # the val run's box F1 threshold
     assert report["test"]["pose_ap_initial"] == pytest.approx(0.7)
     assert "pose_ap_initial" not in report["val"]
