@@ -13,6 +13,17 @@ Output (one BOP dataset per ``--out``; see ``datagen/scene.py`` for what a scene
     OUT/{split}_pbr/{scene_id:06d}/                              BOP scenes (+ datagen_info.json)
     OUT/{split}_pbr/manifest.json                                generator version, config, seed,
                                                                  shard, counts, skipped meshes
+    OUT/test_targets_multiview_bop25.json                        multi-view runs (--views V > 1):
+                                                                 one group per capture
+
+**Multi-view targets.** A run with ``--views V`` > 1 writes ``test_targets_multiview_bop25.json``
+at the dataset root: one group ``{"scene_id", "im_ids": [m*V, ..., m*V + V - 1]}`` per capture
+``m`` of every complete scene (``threept_jax.data.bop.load_multiview_targets`` reads it;
+``python -m infer bop --targets multiview`` runs it). It is rewritten at the end of every run
+from the scenes on disk, so a resumed run lists them all. The root holds one such file: when
+both splits of an ``--out`` are multi-view, it lists the ``val`` split's captures (the
+held-out split one evaluates on). Shards list their own scenes; merged shards concatenate
+their lists (scene ids are disjoint).
 
 **Sharding.** ``--num-scenes`` is the total over all shards; shard ``I`` of ``N`` makes the
 contiguous block of scene ids ``[I * S // N, (I + 1) * S // N)``. Scene ``s`` is drawn from
@@ -494,6 +505,9 @@ def _write_shard(
         skipped_mesh_reasons=dict(sorted(skipped.items())),
     )
     atomic_write_json(split_dir / "manifest.json", manifest, indent=1, sort_keys=True)
+    targets = multiview_targets(split_dir.parent)
+    if targets is not None:
+        bop.write_multiview_targets(split_dir.parent / bop.MULTIVIEW_TARGETS_FILE, targets)
     if not args.quiet:
         t = totals
         spent = t.physics + t.compose + t.render + t.annotate + t.write
@@ -507,6 +521,28 @@ def _write_shard(
                 file=sys.stderr,
             )
     return manifest
+
+
+def multiview_targets(out: pathlib.Path) -> list[bop.MultiviewTarget] | None:
+    """The multi-view groups of the dataset root ``out`` (module docstring): one per capture of
+    every complete scene of its multi-view split (``val`` when both splits are), None when no
+    split of ``out`` is multi-view."""
+    multiview = [split for split in SPLITS
+                 if (out / f"{split}_pbr" / "manifest.json").is_file()
+                 and json.loads((out / f"{split}_pbr" / "manifest.json").read_text())
+                 ["config"]["views"] > 1]
+    if not multiview:
+        return None
+    split_dir = out / f"{'val' if 'val' in multiview else multiview[0]}_pbr"
+    scenes = sorted(int(d.name) for d in split_dir.iterdir()
+                    if d.name.isdigit() and (d / INFO_FILE).is_file())
+    groups = []
+    for s in scenes:
+        info = json.loads((split_dir / f"{s:06d}" / INFO_FILE).read_text())
+        V = info["views"]
+        groups += [bop.MultiviewTarget(s, tuple((None, m * V + v) for v in range(V)))
+                   for m in range(info["captures"])]
+    return groups
 
 
 def build_parser() -> argparse.ArgumentParser:

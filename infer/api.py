@@ -253,8 +253,9 @@ def track(frames, cameras: Sequence[Camera | np.ndarray], objects: Sequence[Onbo
     """Track objects through a sequence by 3PT-R, re-detecting when confidence drops.
 
     Each frame (a list of V images, or one image for V = 1) refines every instance from its pose
-    in the previous frame (:func:`refine`). When ``init`` is None on the first frame, or any
-    instance's refiner score falls under ``min_score``, the frame runs :func:`run_scene`
+    in the previous frame (:func:`refine`). When ``init`` is None on the first frame, any
+    instance's refiner score falls under ``min_score``, or nothing is tracked (the last
+    detection found nothing) and a detector is loaded, the frame runs :func:`run_scene`
     (detection, object generation, refinement) instead and the tracked set is replaced by its
     instances. ``objects`` must be onboarded (``models.onboard``) when re-detection may run.
     Yields a :class:`TrackedFrame` per frame, with its latency.
@@ -268,7 +269,8 @@ def track(frames, cameras: Sequence[Camera | np.ndarray], objects: Sequence[Onbo
         poses, redetected = [], False
         if current:
             poses = refine(images, cameras, objects, current, models)
-        if current is None or any(p.score < min_score for p in poses):
+        lost = not current and models.detector is not None  # nothing tracked: look again
+        if current is None or lost or any(p.score < min_score for p in poses):
             if models.detector is None:
                 raise ValueError("track needs a detector to (re)detect: infer.load(DETECTOR_RUN, "
                                  "refiner=...), or give init poses and min_score=-inf")

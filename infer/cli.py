@@ -1,7 +1,9 @@
 """Command line (``python -m infer``): ``python -m infer bop ...`` (a BOP split -> BOP result files) and
-``python -m infer images ...`` (your images + meshes -> JSON and overlays).
+``python -m infer images ...`` (your images + meshes -> JSON and overlays) and ``python -m infer
+track ...`` (image sequences or a video -> tracked poses, :mod:`infer.track_cli`).
 
-Run ``python -m infer bop --help`` / ``python -m infer images --help``.
+Run ``python -m infer bop --help`` / ``python -m infer images --help`` /
+``python -m infer track --help``.
 """
 
 from __future__ import annotations
@@ -135,6 +137,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="image size the intrinsics were calibrated at, when the images are "
                         "resized: K is rescaled to each image (pixel centres at integers: "
                         "cx' = (cx + 0.5) * sx - 0.5)")
+    from infer.track_cli import add_track_parser
+
+    add_track_parser(sub)
     return parser
 
 
@@ -207,18 +212,24 @@ def _cameras(args, n: int) -> list[Camera]:
     return cameras
 
 
-def run_images(args) -> list:
-    from infer.detect import Detection
-    from infer.visualize import draw_detections, empty_caption
-
+def parse_meshes(items: Sequence[str]) -> dict[int, str]:
+    """``--mesh ID=PATH`` (repeated) -> {obj_id: path}; errors name the bad item."""
     meshes = {}
-    for item in args.mesh:
+    for item in items:
         key, _, path = item.partition("=")
         if not key.isdigit() or not path:
             raise ValueError(f"--mesh {item!r} must be ID=PATH with an integer id")
         if not pathlib.Path(path).is_file():
             raise FileNotFoundError(f"--mesh {item}: no mesh file {path}")
         meshes[int(key)] = path
+    return meshes
+
+
+def run_images(args) -> list:
+    from infer.detect import Detection
+    from infer.visualize import draw_detections, empty_caption
+
+    meshes = parse_meshes(args.mesh)
     cameras = _cameras(args, len(args.image))
     images = [_read_rgb(p) for p in args.image]
     prepare_views(images, cameras)  # K against each image's size, before the slow work
@@ -265,9 +276,13 @@ def main(argv: Sequence[str] | None = None):
             from infer.bop_runner import run_bop
 
             return run_bop(args)
+        if args.command == "track":
+            from infer.track_cli import run_track
+
+            return run_track(args)
         return run_images(args)
     except MeshUnitsError as e:  # name this CLI's flag, not the Python argument
-        fix = e.message("--units {}") if args.command == "images" else (
+        fix = e.message("--units {}") if args.command in ("images", "track") else (
             f"{e}; BOP models are in mm: rescale the models folder")
         print(f"error: {fix}", file=sys.stderr)
         raise SystemExit(2) from e

@@ -21,7 +21,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import pathlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -85,11 +85,14 @@ class RefinedPose:
 class SceneRefiner:
     """A trained 3PT-R and one object set, ready to refine poses (module docstring)."""
 
-    def __init__(self, model: Refiner, config: RefinerConfig, settings: RefineSettings,
+    def __init__(self, model: Refiner | Callable, config: RefinerConfig, settings: RefineSettings,
                  objects: Sequence, loop: LoopSettings | None = None,
                  num_hypotheses: int = NUM_HYPOTHESES):
-        """``objects``: :class:`RefineObject` or :class:`infer.onboarding.OnboardedObject`
-        (their ``obj_id``, ``mesh`` and ``symmetries`` are read)."""
+        """``model``: the 3PT-R network, or any function ``network(real, renders) -> outputs``
+        of the refiner contract (``threept_jax.models.refiner``; e.g. the oracle of
+        ``threept_jax.testing.refiner_oracle`` for upper bounds). ``objects``:
+        :class:`RefineObject` or :class:`infer.onboarding.OnboardedObject` (their ``obj_id``,
+        ``mesh`` and ``symmetries`` are read)."""
         if not objects:
             raise ValueError("SceneRefiner needs at least one object")
         loop = LoopSettings() if loop is None else loop
@@ -101,12 +104,19 @@ class SceneRefiner:
         ns = max(len(o.symmetries) for o in objects)
         self.symmetries = {o.obj_id: pad_symmetries(np.asarray(o.symmetries, np.float32), ns)
                            for o in objects}
-        graphdef, params = nnx.split(model)
-        self._params = params
+        if isinstance(model, nnx.Module):
+            graphdef, self._params = nnx.split(model)
+
+            def network(params):
+                return nnx.merge(graphdef, params)
+        else:  # a pure function of the refiner contract, e.g. testing.refiner_oracle
+            self._params = None
+
+            def network(params):
+                return model
 
         def run(params, stacked, *args):
-            net = nnx.merge(graphdef, params)
-            return refine_instances(net, stacked, *args, crop_size=config.crop_size,
+            return refine_instances(network(params), stacked, *args, crop_size=config.crop_size,
                                     output_size=config.output_size, settings=settings,
                                     loop=loop)
 

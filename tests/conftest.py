@@ -32,6 +32,7 @@ SLOW_FIRST = (
     "tests/train/test_refiner_trainer.py", "tests/train/test_detector_trainer.py",
     "tests/train/test_cluster.py", "tests/infer/test_refine_api.py",
     "tests/pipeline/test_refinement.py", "tests/train/test_resume.py",
+    "tests/infer/test_track_cli.py", "tests/infer/test_bop_runner.py",
 )
 
 

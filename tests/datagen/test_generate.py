@@ -230,3 +230,60 @@ def test_shared_bop_meshes(bop_models_dir, tmp_path):
         assert models[int(oid)].diameter == pytest.approx(info["diameter"], rel=1e-3)
         assert len(models[int(oid)].symmetries.discrete) == len(
             info.get("symmetries_discrete", []))
+
+
+MULTIVIEW = ["--meshes", "procedural:4", "--procedural-max-faces", "800", "--resolution", "64",
+             "48", "--spp", "1", "--instances", "3", "--quiet", "--seed", "5", "--num-scenes",
+             "2", "--views", "2", "--images-per-scene", "2"]
+
+
+def test_multiview_targets_list_every_capture_after_a_resume(tmp_path, monkeypatch):
+    """A two-view rig, two captures per scene, killed inside scene 1: the resumed run's
+    targets file lists the captures of both scenes (it is written from the scenes on disk)."""
+    out = tmp_path / "mv"
+    real = S.BopSceneWriter.add_image
+    calls = {"n": 0}
+
+    def dying(self, *a, **k):
+        res = real(self, *a, **k)
+        calls["n"] += 1
+        if calls["n"] == 5:  # scene 0's 4 images, then the first of scene 1
+            raise KeyboardInterrupt("simulated kill")
+        return res
+
+    monkeypatch.setattr(S.BopSceneWriter, "add_image", dying)
+    with pytest.raises(KeyboardInterrupt):
+        generate.main(MULTIVIEW + ["--out", str(out)])
+    monkeypatch.setattr(S.BopSceneWriter, "add_image", real)
+    generate.main(MULTIVIEW + ["--out", str(out)])
+    ds = BopDataset(out)
+    got = ds.multiview_targets()
+    # Capture m of a scene holds image ids 2m, 2m + 1.
+    assert [(t.scene_id, [i for _, i in t.views]) for t in got] == [
+        (0, [0, 1]), (0, [2, 3]), (1, [0, 1]), (1, [2, 3])]
+    for t in got:  # each group is one capture: views of one rig, posed in one world frame
+        scene = ds.split("train_pbr").scene(t.scene_id)
+        assert {i for _, i in t.views} <= set(scene.image_ids)
+        assert all(scene.cameras[i].T_cam_world is not None for _, i in t.views)
+    raw = json.loads((out / "test_targets_multiview_bop25.json").read_text())
+    assert raw[0] == {"scene_id": 0, "im_ids": [0, 1]}
+
+
+def test_multiview_targets_follow_the_val_split_when_both_are_multiview(tmp_path):
+    """Hand-built roots: only multi-view splits count, and val wins over train."""
+    def split(name, views, scenes, captures=1):
+        d = tmp_path / f"{name}_pbr"
+        d.mkdir()
+        (d / "manifest.json").write_text(json.dumps({"config": {"views": views}}))
+        for s in scenes:
+            (d / f"{s:06d}").mkdir()
+            (d / f"{s:06d}" / generate.INFO_FILE).write_text(
+                json.dumps({"views": views, "captures": captures}))
+        (d / "000009.tmp").mkdir()  # a partial scene: not listed
+
+    split("train", 1, [0, 1])
+    assert generate.multiview_targets(tmp_path) is None
+    split("val", 3, [4, 2], captures=2)
+    got = generate.multiview_targets(tmp_path)
+    assert [(t.scene_id, [i for _, i in t.views]) for t in got] == [
+        (2, [0, 1, 2]), (2, [3, 4, 5]), (4, [0, 1, 2]), (4, [3, 4, 5])]

@@ -40,12 +40,14 @@ from threept_jax.data.bop.json_format import (
     write_json_atomic,
 )
 from threept_jax.data.bop.models import (
+    MULTIVIEW_TARGETS_FILE,
     compute_model_info,
     load_models,
     load_models_info,
     load_multiview_targets,
     load_targets,
     write_models_info,
+    write_multiview_targets,
     write_targets,
 )
 from threept_jax.data.bop.reader import (
@@ -81,6 +83,7 @@ from threept_jax.data.bop.writer import (
 )
 
 __all__ = [
+    "MULTIVIEW_TARGETS_FILE",
     "POSE_CSV_HEADER",
     "BopDataset",
     "BopScene",
@@ -110,6 +113,7 @@ __all__ = [
     "write_detection_results",
     "write_json_atomic",
     "write_models_info",
+    "write_multiview_targets",
     "write_pose_results",
     "write_targets",
 ]

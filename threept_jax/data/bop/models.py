@@ -145,6 +145,21 @@ def write_targets(path, targets: Iterable[Target]) -> None:
     write_json_atomic(path, rows)
 
 
+#: The multi-view targets file at a dataset's root (BOP 2025).
+MULTIVIEW_TARGETS_FILE = "test_targets_multiview_bop25.json"
+
+
+def write_multiview_targets(path, targets: Iterable[MultiviewTarget]) -> None:
+    """Write ``test_targets_multiview_bop25.json``: one ``{"scene_id", "im_ids"}`` group per
+    target, a view as its im_id, or as ``[sensor, im_id]`` when it names a sensor (the forms
+    :func:`load_multiview_targets` reads)."""
+    rows = [{"scene_id": int(t.scene_id),
+             "im_ids": [int(i) if sensor is None else [str(sensor), int(i)]
+                        for sensor, i in t.views]}
+            for t in targets]
+    write_json_atomic(path, rows)
+
+
 def load_multiview_targets(path) -> list[MultiviewTarget]:
     """Load ``test_targets_multiview_bop25.json``: a list of groups with ``scene_id`` and the
     group's views under ``im_id`` (or ``im_ids``): an int, a list of ints, or a list of

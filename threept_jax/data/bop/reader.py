@@ -12,7 +12,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from threept_jax.data.bop.json_format import _int_keys, _json_int, _load_json, entry_errors
-from threept_jax.data.bop.models import load_models, load_multiview_targets, load_targets
+from threept_jax.data.bop.models import (
+    MULTIVIEW_TARGETS_FILE,
+    load_models,
+    load_multiview_targets,
+    load_targets,
+)
 from threept_jax.data.bop.types import (
     IMAGE_EXTS,
     Camera,
@@ -356,7 +361,7 @@ class BopDataset:
         return load_targets(p) if p.is_file() else None
 
     def multiview_targets(self) -> list[MultiviewTarget] | None:
-        p = self.root / "test_targets_multiview_bop25.json"
+        p = self.root / MULTIVIEW_TARGETS_FILE
         return load_multiview_targets(p) if p.is_file() else None
 
     def camera_info(self, sensor: str | None = None) -> dict | None:
