@@ -1,24 +1,30 @@
 """The main job on built-in defaults: ``python -m demo`` (what ``make demo`` runs).
 
-Both ways 3PT is used, on full images, on a 2-core CPU in five to seven minutes, with nothing
+Both ways 3PT is used, on full images, on a 2-core CPU in at most 15 minutes, with nothing
 downloaded and nothing from outside the repository:
 
 1. **Adapted** (``python -m train.adapt``, a user's own parts): five procedural parts of a fixed
    seed stand for the parts of a cell. Scenes of them are path-traced (Mitsuba) and packed
    with render banks, a detector (``--config``) is trained from scratch for ``--minutes``,
-   and its best checkpoint (full-image AP50 on val scenes) detects every part in new test
-   scenes: box AP50, BOP 6D AP from object generation alone, overlays.
+   then a refiner (3PT-R, ``train/configs/refiner.py:tiny``) for ``--refiner-minutes`` on the
+   same records. The best detector checkpoint (full-image AP50 on val scenes) detects every
+   part in new test scenes, object generation gives each detection a pose and the refiner
+   refines it: box AP50, and BOP 6D AP, AP-mm and segmentation AP before refinement (object
+   generation alone) and after it.
 2. **Zero-shot**: five other procedural parts, never seen in training, are onboarded from
    their meshes alone and detected by the same detector in scenes of their own (val scenes
-   choose the overlay threshold, test scenes give the figures).
+   choose the overlay threshold, test scenes give the figures), and refined by the same
+   refiner, which never saw them either.
 
-Every stage resumes: run the same command again and finished stages are skipped (a killed
-data generation redoes only its unfinished scene, a killed training restarts from its last
-checkpoint). Outputs go to ``--out`` (default ``runs/demo``): ``report.json``, the two
-settings' overlays (``adapted/test/overlays``, ``zero_shot/test/overlays``: boxes and the
-contours of the estimated poses, at least 640 px wide, only detections above the best-F1
-threshold of the val scenes). What 2 cores reach in these minutes, and the curve of AP
-against training time, are in the README ("Known limits", "Benchmarks").
+A refiner trained for a few CPU minutes may not improve the poses yet: the "before" and "after"
+figures say which way it went, and a worse "after" is reported as it is (``--refiner-minutes
+0`` skips the refiner). Every stage resumes: run the same command again and finished stages are
+skipped (a killed data generation redoes only its unfinished scene, a killed training restarts
+from its last checkpoint). Outputs go to ``--out`` (default ``runs/demo``): ``report.json``,
+the two settings' overlays (``adapted/test/overlays``, ``zero_shot/test/overlays``: boxes and
+the contours of the refined poses, at least 640 px wide, only detections above the best-F1
+threshold of the val scenes). What 2 cores reach in these minutes, and the curve of AP against
+training time, are in the README ("Known limits", "Benchmarks").
 """
 
 from __future__ import annotations
@@ -33,19 +39,26 @@ from collections.abc import Sequence
 ADAPTED_SEED, ZERO_SHOT_SEED = 7, 8
 
 
-def zero_shot(out: pathlib.Path, workdir: pathlib.Path, test_scenes: int, seed: int) -> dict:
-    """Scenes of parts the detector never saw (val and test shards), detected by it."""
+def zero_shot(out: pathlib.Path, workdir: pathlib.Path, test_scenes: int, seed: int,
+              refiner: pathlib.Path | None) -> dict:
+    """Scenes of parts the detector (and ``refiner``) never saw (val and test shards),
+    detected by it (and refined)."""
     from train import adapt
 
     args = adapt.parse_args(["--meshes", "procedural:5", "--seed", str(seed), "--workdir",
                              str(out), "--test-scenes", str(test_scenes)])
     adapt.generate(args, out / "data", sets=("val", "test"))
-    return adapt.test(workdir, out / "data", out, out / "cache", overlays=6)
+    return adapt.test(workdir, out / "data", out, out / "cache", overlays=6,
+                      instances=args.instances, refiner=refiner)
 
 
-def _line(name: str, figs: dict) -> str:
-    return (f"{name}: box AP50 {figs['box_ap50']:.3f}, AP {figs['box_ap']:.3f}, "
-            f"BOP 6D AP {figs['pose_ap']:.3f}")
+def summary(name: str, figs: dict) -> list[str]:
+    """One setting's printed lines: box AP, then 6D AP, AP-mm and segmentation AP (before and
+    after refinement when refining, :func:`train.adapt.summary_lines`)."""
+    from train.adapt import summary_lines
+
+    return [f"{name}: box AP50 {figs['box_ap50']:.3f}, AP {figs['box_ap']:.3f}",
+            *(f"    {line}" for line in summary_lines(figs))]
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -57,6 +70,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p.add_argument("--minutes", type=float, default=4.0, help="training budget")
     p.add_argument("--config", default="tiny", choices=CONFIGS,
                    help="detector config (tiny: the most steps in a few minutes)")
+    p.add_argument("--refiner-minutes", type=float, default=3.0,
+                   help="refiner training budget (0: no refiner, object generation alone)")
     p.add_argument("--train-scenes", type=int, default=30, help="4 images each")
     p.add_argument("--test-scenes", type=int, default=4, help="2 images each, per setting")
     args = p.parse_args(argv)
@@ -66,22 +81,25 @@ def main(argv: Sequence[str] | None = None) -> dict:
     adapted = adapt.main([
         "--meshes", "procedural:5", "--seed", str(ADAPTED_SEED), "--workdir",
         str(args.out / "adapted"), "--minutes", f"{args.minutes:g}", "--config", args.config,
-        "--train-scenes", str(args.train_scenes), "--test-scenes", str(args.test_scenes)])
+        "--train-scenes", str(args.train_scenes), "--test-scenes", str(args.test_scenes),
+        "--refiner-minutes", f"{args.refiner_minutes:g}"])
+    refiner = None if adapted["refiner"] is None else pathlib.Path(adapted["refiner"])
 
     print(f"\n== zero-shot: 5 parts never seen in training -> {args.out / 'zero_shot'}",
           flush=True)
     start = time.perf_counter()
     unseen = zero_shot(args.out / "zero_shot", args.out / "adapted", args.test_scenes,
-                       ZERO_SHOT_SEED)
+                       ZERO_SHOT_SEED, refiner)
     print(f"   ({time.perf_counter() - start:.0f} s)")
 
     report = {"adapted": adapted, "zero_shot": unseen,
               "minutes": (time.perf_counter() - total) / 60}
     (args.out / "report.json").write_text(json.dumps(report, indent=1, default=float))
-    print(f"\ndone in {report['minutes']:.1f} min. Full images, all parts queried, new scenes:"
-          f"\n  {_line('adapted (trained on these 5 parts)', adapted['test'])}"
-          f"\n  {_line('zero-shot (5 parts never seen)', unseen['test'])}"
-          f"\nReport {args.out / 'report.json'}; overlays {adapted['overlays']} and "
+    lines = [*summary("adapted (trained on these 5 parts)", adapted["test"]),
+             *summary("zero-shot (5 parts never seen)", unseen["test"])]
+    print(f"\ndone in {report['minutes']:.1f} min. Full images, all parts queried, new scenes:\n"
+          + "\n".join(f"  {line}" for line in lines)
+          + f"\nReport {args.out / 'report.json'}; overlays {adapted['overlays']} and "
           f"{unseen['overlays']}")
     return report
 

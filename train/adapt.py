@@ -1,8 +1,8 @@
-"""Adapt 3PT-D to your own parts: ``python -m train.adapt --meshes DIR --workdir W``.
+"""Adapt 3PT to your own parts: ``python -m train.adapt --meshes DIR --workdir W``.
 
 3PT finds parts it has never seen (zero-shot). An industrial cell, though, handles a fixed set
 of parts, and the best BOP-Industrial entries train a few minutes per part. This command does
-that with our own data engine, in five stages that each resume when the command is run again:
+that with our own data engine, in stages that each resume when the command is run again:
 
 1. **Scenes** (``datagen.generate``): path-traced scenes of exactly the given meshes (drop,
    float and pack layouts, distractors, random materials), in three disjoint sets of one mesh
@@ -11,18 +11,27 @@ that with our own data engine, in five stages that each resume when the command 
    sees it).
 2. **Records** (``datagen.pack``): ArrayRecord shards and render banks at the model's render
    size -> ``W/records``.
-3. **Budget**: the warm step time of this config on this machine is measured once (a few
-   compiled steps of a throw-away state) and the number of steps that fits ``--minutes`` is
-   fixed in ``W/adapt.json``, so that a resumed run keeps its learning-rate schedule.
-4. **Training** (``train.trainer_detector``), from scratch or from ``--from RUN``'s best
-   checkpoint (fine-tuning: the model section is that run's). ``W`` is an ordinary run
-   directory (``config.json``, ``checkpoints/``, ``tb/``): ``python -m infer images --workdir W``
-   loads it, and a killed run resumes from its last checkpoint.
-5. **Test**: the best checkpoint (by full-image AP50 on the val scenes) runs ``python -m infer
-   bop`` on the val scenes, whose best-F1 score becomes the overlay threshold, then on the test
-   scenes: full images, every part queried. Box AP / AP50 (COCO, BOP ignore rule) and BOP 6D
-   AP (MSSD/MSPD, object generation alone) -> ``W/report.json``; overlays (boxes and pose
-   contours, at least 640 px wide) under ``W/test/overlays``.
+3. **Budget**: the warm step time of each model trained here is measured once (a few compiled
+   steps of a throw-away state) and the number of steps that fits its budget (``--minutes``
+   for the detector, ``--refiner-minutes`` for the refiner) is fixed in ``W/adapt.json``, so
+   that a resumed run keeps its learning-rate schedule.
+4. **Detector training** (``train.trainer_detector``), from scratch or from ``--from RUN``'s
+   best checkpoint (fine-tuning: the model section is that run's). ``W`` is an ordinary run
+   directory (``config.json``, ``checkpoints/``, ``tb/``): ``python -m infer images --workdir
+   W`` loads it, and a killed run resumes from its last checkpoint.
+5. **Refiner training** (``train.trainer_refiner``, only with ``--refiner-minutes`` > 0; the
+   default 0 trains no refiner and tests object generation alone): a 3PT-R run of
+   ``--refiner-config`` (``train/configs/refiner.py``) from scratch on the same records ->
+   ``W/refiner``, an ordinary refiner run (``python -m infer bop --refiner W/refiner``); its
+   best checkpoint by the held-out MSSD recall after refinement on the val records.
+6. **Test**: the best detector checkpoint (by full-image AP50 on the val scenes) runs ``python
+   -m infer bop`` on the val scenes, whose best-F1 score becomes the overlay threshold, then on
+   the test scenes: full images, every part queried, the best detections of an image whatever
+   their score (as many as a scene holds instances at most, :func:`max_detections`), refined
+   by ``W/refiner`` when one was trained. Box AP / AP50 (COCO, BOP ignore rule), segmentation
+   AP and BOP 6D AP and AP-mm -> ``W/report.json`` (:func:`figures`: with a refiner, before
+   and after refinement); overlays (boxes and pose contours, refined when refining, at least
+   640 px wide) under ``W/test/overlays``.
 
 ``--meshes`` takes what ``datagen.generate`` takes: BOP models folders, trees of mesh files
 (``--mesh-units`` when not mm), or ``procedural:N`` (N parts of ``--seed``; the demo's parts).
@@ -32,14 +41,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import pathlib
 import tempfile
 import time
 from collections.abc import Sequence
 
-#: Share of ``--minutes`` kept for the periodic evaluations and checkpoints of the run.
+#: Share of each training budget kept for the periodic evaluations and checkpoints of the run.
 EVAL_SHARE = 0.15
-#: Evaluations (full val images) and checkpoints over the run.
+#: Evaluations and checkpoints over a run.
 NUM_EVALS = 4
 #: Steps timed for the budget (after one compiling step and two warm-up steps).
 TIMED_STEPS = 8
@@ -65,13 +75,20 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--mesh-units", default="mm", choices=("mm", "cm", "m", "in"),
                    help="units of the mesh files")
     p.add_argument("--workdir", type=pathlib.Path, required=True,
-                   help="run folder: data/, records/, the training run, test/, report.json")
-    p.add_argument("--minutes", type=float, default=10.0, help="training budget (wall clock)")
+                   help="run folder: data/, records/, the training run, refiner/, test/, "
+                        "report.json")
+    p.add_argument("--minutes", type=float, default=10.0,
+                   help="detector training budget (wall clock)")
     p.add_argument("--from", dest="init_from", type=pathlib.Path, default=None,
                    help="a detector training run to fine-tune (its best checkpoint); default: "
                         "train from scratch")
     p.add_argument("--config", default="cpu", choices=CONFIGS,
                    help="train/configs/detector.py config (ignored for the model with --from)")
+    p.add_argument("--refiner-minutes", type=float, default=0.0,
+                   help="refiner (3PT-R) training budget (wall clock) after the detector's; "
+                        "0: no refiner, the test scores object generation alone")
+    p.add_argument("--refiner-config", default="tiny", choices=CONFIGS,
+                   help="train/configs/refiner.py config")
     p.add_argument("--train-scenes", type=int, default=40, help="4 images each")
     p.add_argument("--test-scenes", type=int, default=6,
                    help="2 images each, and as many val scenes")
@@ -86,6 +103,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if not 0 < args.minutes <= 24 * 60:
         p.error(f"--minutes must be in (0, 1440], got {args.minutes:g}")
+    if not 0 <= args.refiner_minutes <= 24 * 60:
+        p.error(f"--refiner-minutes must be in [0, 1440] (0: no refiner), got "
+                f"{args.refiner_minutes:g}")
     if min(args.resolution) < 64:
         p.error(f"--resolution must be at least 64 x 64, got {args.resolution}")
     if args.init_from is not None and not (args.init_from / "detector.json").exists():
@@ -129,11 +149,11 @@ def pack(data: pathlib.Path, records: pathlib.Path, render_size: int) -> None:
                  "--bank-size", str(render_size), "--num-templates", "512", "--quiet"])
 
 
-# --------------------------------------------------------------------------- stages 3-4
+# --------------------------------------------------------------------------- stages 3-5
 
 
 def base_config(args, records: pathlib.Path):
-    """The training config: ``--config``'s, with the model of ``--from``'s run."""
+    """The detector's training config: ``--config``'s, with the model of ``--from``'s run."""
     from threept_jax.data.run_dir import RunDir
     from train.configs.detector import get_config
 
@@ -147,17 +167,38 @@ def base_config(args, records: pathlib.Path):
     return config
 
 
-def measure_step_seconds(config) -> float:
-    """Warm seconds per train step of ``config`` here (a throw-away run in a temp folder)."""
-    import jax
+def refiner_config(args, records: pathlib.Path):
+    """The refiner's training config: ``--refiner-config``'s on the same records (its held-out
+    evaluation reads their val split: the val scenes' parts, other scenes)."""
+    from train.configs.refiner import get_config
 
+    config = get_config(args.refiner_config)
+    config.data_dir = str(records.resolve())
+    config.progress_bar = True
+    return config
+
+
+def trainer_class(config):
+    """The trainer of ``config.trainer`` (as ``train/launch.py`` picks it)."""
+    if config.trainer == "refiner":
+        from train.trainer_refiner import RefinerTrainer
+
+        return RefinerTrainer
     from train.trainer_detector import DetectorTrainer
+
+    return DetectorTrainer
+
+
+def measure_step_seconds(config) -> float:
+    """Warm seconds per train step of ``config`` (detector or refiner) here: a throw-away run
+    of its trainer in a temp folder."""
+    import jax
 
     probe = config.copy_and_resolve_references()
     probe.eval.every_steps = 0
     probe.init_from = ""
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = DetectorTrainer(probe, tmp)
+        trainer = trainer_class(probe)(probe, tmp)
         try:
             for i in range(3 + TIMED_STEPS):
                 if i == 3:
@@ -168,76 +209,150 @@ def measure_step_seconds(config) -> float:
             trainer.close()
 
 
-def plan(args, config, workdir: pathlib.Path) -> dict:
-    """Steps that fit the budget, measured once and kept in ``W/adapt.json``."""
+def plan(args, configs: dict, workdir: pathlib.Path) -> dict:
+    """Steps of each model of ``configs`` ({"detector": config, "refiner": config}) that fit
+    its budget, measured once and kept in ``W/adapt.json`` (one entry per model: ``steps``,
+    ``step_seconds``, ``minutes``, ``config``); a model planned before keeps its entry."""
     path = workdir / "adapt.json"
-    if path.exists():
-        saved = json.loads(path.read_text())
-        print(f"   {saved['steps']} steps ({saved['step_seconds']:.3f} s each), from {path}")
-        if saved["minutes"] != args.minutes:
-            print(f"   note: this run was planned for {saved['minutes']:g} minutes; --minutes "
-                  f"{args.minutes:g} is ignored so that the resumed run keeps its schedule "
-                  "(use a new --workdir to train with another budget)")
-        return saved
-    step_s = measure_step_seconds(config)
-    steps = max(NUM_EVALS, int(args.minutes * 60 * (1 - EVAL_SHARE) / step_s))
-    saved = {"steps": steps, "step_seconds": step_s, "minutes": args.minutes,
-             "config": args.config, "meshes": args.meshes,
-             "from": None if args.init_from is None else str(args.init_from)}
+    saved = json.loads(path.read_text()) if path.exists() else {}
+    flags = {"detector": ("--minutes", args.minutes, args.config),
+             "refiner": ("--refiner-minutes", args.refiner_minutes, args.refiner_config)}
+    for name, config in configs.items():
+        flag, minutes, config_name = flags[name]
+        if name in saved:
+            entry = saved[name]
+            print(f"   {name}: {entry['steps']} steps ({entry['step_seconds']:.3f} s each), "
+                  f"from {path}")
+            if entry["minutes"] != minutes:
+                print(f"   note: the {name} was planned for {entry['minutes']:g} minutes; {flag} "
+                      f"{minutes:g} is ignored so that the resumed run keeps its schedule (use "
+                      "a new --workdir to train with another budget)")
+            continue
+        step_s = measure_step_seconds(config)
+        steps = max(NUM_EVALS, int(minutes * 60 * (1 - EVAL_SHARE) / step_s))
+        saved[name] = {"steps": steps, "step_seconds": step_s, "minutes": minutes,
+                       "config": config_name}
+        print(f"   {name}: {step_s:.3f} s per step of batch {config.batch_size}: {steps} steps "
+              f"in {minutes:g} minutes")
+    saved.update(meshes=args.meshes, **{"from": None if args.init_from is None
+                 else str(args.init_from)})
     workdir.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(saved, indent=1))
-    print(f"   {step_s:.3f} s per step of batch {config.batch_size}: {steps} steps in "
-          f"{args.minutes:g} minutes")
+    text = json.dumps(saved, indent=1)
+    if not path.exists() or path.read_text() != text:
+        path.write_text(text)
     return saved
 
 
-def train(config, steps: int, workdir: pathlib.Path) -> dict:
-    from train import trainer_detector
+def train(config, steps: int, workdir: pathlib.Path) -> None:
+    """Train ``config``'s model to ``steps`` in ``workdir`` (resuming; nothing to do when its
+    last checkpoint is at ``steps``)."""
+    from threept_jax.data.run_dir import RunDir
 
+    done = RunDir(workdir, model=config.trainer).checkpoint_steps()
+    if done and done[-1] >= steps:
+        print(f"   finished (checkpoint at step {done[-1]}), skipped", flush=True)
+        return
     config.total_steps = steps
     every = max(steps // NUM_EVALS, 1)
     config.eval.every_steps = every
     config.checkpoint.every_steps = every
     config.log_every = max(steps // 20, 1)
-    return trainer_detector.train(config, workdir)
+    trainer_class(config)(config, workdir).run()
 
 
-# --------------------------------------------------------------------------- stage 5
+# --------------------------------------------------------------------------- stage 6
+
+
+def max_detections(instances: int) -> int:
+    """Detections kept per test image whatever their score (AP ranks them; every one is refined
+    when refining): the most instances a scene of ``--instances`` holds (datagen draws the
+    count uniformly in (1 +- spread) x ``instances``: 4 to 12 for the default 8). Fewer would
+    cap the recall; more only adds low-ranked false positives, each refined at a cost (about a
+    second per image per 20 instances on 2 CPU cores)."""
+    from datagen.scene import SceneConfig
+
+    return max(1, math.floor((1 + SceneConfig.instance_spread) * instances))
 
 
 def infer_bop(workdir: pathlib.Path, dataset: pathlib.Path, out: pathlib.Path, cache: pathlib.Path,
-              overlays: int = 0, overlay_threshold: float | None = None) -> dict:
+              max_detections: int, overlays: int = 0, overlay_threshold: float | None = None,
+              refiner: pathlib.Path | None = None) -> dict:
+    """``python -m infer bop --evaluate`` of the best detector checkpoint of ``workdir`` (and
+    of ``refiner``'s best checkpoint when given) on ``dataset``'s ``val_pbr`` images, the
+    ``max_detections`` best detections of an image whatever their score."""
     from infer.cli import main as infer_main
 
     argv = ["bop", "--workdir", str(workdir), "--step", "best", "--dataset-dir", str(dataset),
             "--split", "val_pbr", "--targets", "all", "--evaluate", "--num-templates", "512",
-            # Every image's 20 best detections whatever their score: AP ranks them.
-            "--score-threshold", "0", "--max-detections", "20", "--out", str(out),
-            "--overlays", str(overlays), "--cache-dir", str(cache)]
+            "--score-threshold", "0", "--max-detections", str(max_detections),
+            "--out", str(out), "--overlays", str(overlays), "--cache-dir", str(cache)]
     if overlay_threshold is not None:
         argv += ["--overlay-threshold", f"{overlay_threshold:.6g}"]
+    if refiner is not None:
+        argv += ["--refiner", str(refiner), "--refiner-step", "best"]
     return infer_main(argv)
 
 
+#: The figures of a result that refinement changes (:func:`figures`).
+POSE_FIGURES = ("pose_ap", "pose_ap_mm", "pose_ap_mssd", "pose_ap_mspd", "segm_ap")
+
+
+def _pose_figures(pose: dict, detection: dict, suffix: str = "") -> dict:
+    values = (pose.get("ap"), pose.get("ap_mm"), pose.get("ap_mssd"), pose.get("ap_mspd"),
+              detection.get("segm", {}).get("ap"))
+    return {name + suffix: v for name, v in zip(POSE_FIGURES, values)}
+
+
 def figures(result: dict) -> dict:
-    """The headline numbers of an ``infer bop --evaluate`` result."""
-    box = result.get("detection", {}).get("bbox", {})
-    pose = result.get("pose", {})
-    return {"box_ap": box.get("ap"), "box_ap50": box.get("ap50"), "box_f1": box.get("f1"),
-            "box_f1_threshold": box.get("f1_threshold"), "pose_ap": pose.get("ap"),
-            "pose_ap_mssd": pose.get("ap_mssd"), "pose_ap_mspd": pose.get("ap_mspd")}
+    """The headline numbers of an ``infer bop --evaluate`` result.
+
+    ``box_*``: the detector's boxes (COCO AP, AP50, best F1 and its score threshold).
+    :data:`POSE_FIGURES` (BOP 6D AP, AP-mm, AP-MSSD, AP-MSPD and 2D segmentation AP): the
+    written results, i.e. after refinement when a refiner ran; then the same figures of object
+    generation alone (the initial poses and their silhouette masks) are added with the suffix
+    ``_initial``: before refinement.
+    """
+    refined = "pose_initial" in result
+    detection = result.get("detection", {})
+    # With a refiner the final boxes are the refined masks' tight boxes; the initial file
+    # keeps the detector's.
+    box = result.get("detection_initial" if refined else "detection", {}).get("bbox", {})
+    out = {"box_ap": box.get("ap"), "box_ap50": box.get("ap50"), "box_f1": box.get("f1"),
+           "box_f1_threshold": box.get("f1_threshold"),
+           **_pose_figures(result.get("pose", {}), detection)}
+    if refined:
+        out.update(_pose_figures(result["pose_initial"], result.get("detection_initial", {}),
+                                 "_initial"))
+    return out
+
+
+def summary_lines(figs: dict) -> list[str]:
+    """The 6D and segmentation figures of :func:`figures` as printed lines: one without a
+    refiner, "before refinement" and "after refinement" with one."""
+
+    def line(suffix: str = "") -> str:
+        return (f"6D AP {figs['pose_ap' + suffix]:.3f}, AP-mm {figs['pose_ap_mm' + suffix]:.3f}, "
+                f"segm AP {figs['segm_ap' + suffix]:.3f}")
+
+    if "pose_ap_initial" not in figs:
+        return [f"object generation (no refiner): {line()}"]
+    return [f"before refinement: {line('_initial')}", f"after refinement:  {line()}"]
 
 
 def test(workdir: pathlib.Path, data: pathlib.Path, out: pathlib.Path, cache: pathlib.Path,
-         overlays: int) -> dict:
+         overlays: int, instances: int, refiner: pathlib.Path | None = None) -> dict:
     """The best checkpoint of ``workdir`` on ``data/val`` (whose best-F1 score becomes the
-    overlay threshold) and on ``data/test``: figures, threshold and the overlays' folder."""
-    val = figures(infer_bop(workdir, data / "val", out / "val", cache))
+    overlay threshold; detection alone, no refinement) and on ``data/test``, refined by
+    ``refiner`` when given, scenes generated with ``--instances instances``: figures,
+    threshold and the overlays' folder."""
+    keep = max_detections(instances)
+    val = figures(infer_bop(workdir, data / "val", out / "val", cache, keep))
     threshold = val["box_f1_threshold"]
     print(f"   overlay threshold {threshold:.3f} (best F1 {val['box_f1']:.3f} on the val scenes)")
-    result = figures(infer_bop(workdir, data / "test", out / "test", cache, overlays=overlays,
-                               overlay_threshold=threshold))
+    result = figures(infer_bop(workdir, data / "test", out / "test", cache, keep,
+                               overlays=overlays, overlay_threshold=threshold, refiner=refiner))
     return {"test": result, "val": val, "overlay_threshold": threshold,
+            "refiner": None if refiner is None else str(refiner),
             "overlays": str(out / "test" / "overlays")}
 
 
@@ -245,37 +360,58 @@ def main(argv: Sequence[str] | None = None) -> dict:
     args = parse_args(argv)
     w = args.workdir
     data, records, cache = w / "data", w / "records", w / "cache"
+    refiner = w / "refiner" if args.refiner_minutes > 0 else None
+    n = 6 if refiner else 5
     minutes: dict[str, float] = {}
 
-    start = _stage(f"1/5 scenes of {' '.join(args.meshes)} -> {data}")
+    start = _stage(f"1/{n} scenes of {' '.join(args.meshes)} -> {data}")
     generate(args, data)
     minutes["scenes"] = _done(start) / 60
 
-    config = base_config(args, records)
-    start = _stage(f"2/5 records and render banks -> {records}")
-    pack(data, records, int(config.model.render_size))
+    configs = {"detector": base_config(args, records)}
+    if refiner:
+        configs["refiner"] = refiner_config(args, records)
+    start = _stage(f"2/{n} records and render banks -> {records}")
+    pack(data, records, int(configs["detector"].model.render_size))
     minutes["records"] = _done(start) / 60
 
-    start = _stage(f"3/5 budget: steps of the {config.model.variant} detector in "
-                   f"{args.minutes:g} minutes")
-    budget = plan(args, config, w)
+    budgets = ", ".join(f"the {c.model.variant} {name} in {m:g} minutes" for name, c, m in (
+        ("detector", configs["detector"], args.minutes),
+        ("refiner", configs.get("refiner"), args.refiner_minutes)) if c is not None)
+    start = _stage(f"3/{n} budget: steps of {budgets}")
+    budget = plan(args, configs, w)
     minutes["budget"] = _done(start) / 60
 
-    start = _stage(f"4/5 training ({budget['steps']} steps, "
+    steps = budget["detector"]["steps"]
+    start = _stage(f"4/{n} detector training ({steps} steps, "
                    f"{'from ' + str(args.init_from) if args.init_from else 'from scratch'}) -> {w}")
-    train(config, budget["steps"], w)
+    train(configs["detector"], steps, w)
     minutes["training"] = _done(start) / 60
 
-    start = _stage(f"5/5 full-image test on new scenes -> {w / 'test'}")
-    report = test(w, data, w, cache, args.overlays)
-    test_figures = report["test"]
+    if refiner:
+        start = _stage(f"5/{n} refiner training ({budget['refiner']['steps']} steps, from "
+                       f"scratch) -> {refiner}")
+        train(configs["refiner"], budget["refiner"]["steps"], refiner)
+        minutes["refiner_training"] = _done(start) / 60
+    elif "refiner" in budget:
+        print(f"   note: --refiner-minutes 0: the refiner planned in {w / 'adapt.json'} is "
+              "neither trained nor used")
+
+    start = _stage(f"{n}/{n} full-image test on new scenes -> {w / 'test'}"
+                   + (f", refined by {refiner}" if refiner else ""))
+    report = test(w, data, w, cache, args.overlays, args.instances, refiner=refiner)
     minutes["test"] = _done(start) / 60
-    report.update(steps=budget["steps"], config=config.model.variant, minutes=minutes)
+    report.update(steps=steps, config=configs["detector"].model.variant, minutes=minutes)
+    if refiner:
+        report.update(refiner_steps=budget["refiner"]["steps"],
+                      refiner_config=configs["refiner"].model.variant)
     (w / "report.json").write_text(json.dumps(report, indent=1, default=float))
-    print(f"\nadapted detector, test scenes (full images, all parts queried): box AP50 "
-          f"{test_figures['box_ap50']:.3f}, AP {test_figures['box_ap']:.3f}, BOP 6D AP "
-          f"{test_figures['pose_ap']:.3f}"
-          f"\nreport {w / 'report.json'}, overlays {w / 'test' / 'overlays'}")
+    figs = report["test"]
+    print("\nadapted detector, test scenes (full images, all parts queried): box AP50 "
+          f"{figs['box_ap50']:.3f}, AP {figs['box_ap']:.3f}")
+    for line in summary_lines(figs):
+        print(f"  {line}")
+    print(f"report {w / 'report.json'}, overlays {w / 'test' / 'overlays'}")
     return report
 
 

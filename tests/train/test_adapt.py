@@ -5,7 +5,7 @@ import json
 import cv2
 import pytest
 
-from infer.checkpoint import load_detector
+from infer.checkpoint import load_detector, load_refiner
 from threept_jax.data.run_dir import RunDir
 from train import adapt
 
@@ -13,6 +13,8 @@ from train import adapt
 def test_bad_arguments_exit_2_naming_the_flag(tmp_path, capsys):
     for argv, match in (
         (["--minutes", "0"], "--minutes must be in"),
+        (["--refiner-minutes", "-1"], "--refiner-minutes must be in"),
+        (["--refiner-config", "huge"], "invalid choice: 'huge'"),
         (["--train-scenes", "0"], "--train-scenes must be >= 1"),
         (["--resolution", "32", "32"], "--resolution must be at least"),
         (["--from", str(tmp_path)], "is not a detector training run"),
@@ -21,13 +23,137 @@ def test_bad_arguments_exit_2_naming_the_flag(tmp_path, capsys):
             adapt.main(["--meshes", "procedural:1", "--workdir", str(tmp_path / "w"), *argv])
         assert e.value.code == 2
         assert match in capsys.readouterr().err
+    args = adapt.parse_args(["--meshes", "procedural:1", "--workdir", str(tmp_path)])
+    assert args.refiner_minutes == 0 and args.refiner_config == "tiny"  # no refiner by default
 
 
-def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path):
+def _summary(ap: float, initial: bool) -> dict:
+    """An ``infer bop --evaluate`` summary (the interface of infer/bop_runner.py) whose every
+    figure is ``ap`` plus a distinct offset, the initial files' ``ap + 0.5`` plus the same."""
+
+    def files(base):
+        pose = {"ap": base, "ap_mm": base + .01, "ap_mssd": base + .02, "ap_mspd": base + .03,
+                "ar_mssd": 0.9, "per_object": {"1": 0.9}}
+        det = {"bbox": {"ap": base + .04, "ap50": base + .05, "f1": base + .06,
+                        "f1_threshold": base + .07},
+               "segm": {"ap": base + .08, "ap50": 0.9}}
+        return pose, det
+
+    pose, det = files(ap)
+    out = {"csv": "x.csv", "json": "x.json", "pose": pose, "detection": det}
+    if initial:
+        out["pose_initial"], out["detection_initial"] = files(ap + 0.5)
+    return out
+
+
+def test_figures_before_and_after_refinement():
+    plain = adapt.figures(_summary(0.1, initial=False))
+    assert plain == pytest.approx({
+        "box_ap": .14, "box_ap50": .15, "box_f1": .16, "box_f1_threshold": .17,
+        "pose_ap": .1, "pose_ap_mm": .11, "pose_ap_mssd": .12, "pose_ap_mspd": .13,
+        "segm_ap": .18})
+    assert adapt.summary_lines(plain) == [
+        "object generation (no refiner): 6D AP 0.100, AP-mm 0.110, segm AP 0.180"]
+
+    refined = adapt.figures(_summary(0.1, initial=True))
+    # The boxes are the detector's (the initial file's); pose and masks after refinement come
+    # from the final files, before refinement from the initial ones.
+    assert refined == pytest.approx({
+        "box_ap": .64, "box_ap50": .65, "box_f1": .66, "box_f1_threshold": .67,
+        "pose_ap": .1, "pose_ap_mm": .11, "pose_ap_mssd": .12, "pose_ap_mspd": .13,
+        "segm_ap": .18,
+        "pose_ap_initial": .6, "pose_ap_mm_initial": .61, "pose_ap_mssd_initial": .62,
+        "pose_ap_mspd_initial": .63, "segm_ap_initial": .68})
+    # A worse "after" is printed as it is.
+    assert adapt.summary_lines(refined) == [
+        "before refinement: 6D AP 0.600, AP-mm 0.610, segm AP 0.680",
+        "after refinement:  6D AP 0.100, AP-mm 0.110, segm AP 0.180"]
+
+
+def test_test_stage_refines_the_test_scenes_only(tmp_path, monkeypatch):
+    import infer.cli
+
+    calls = []
+
+    def fake_main(argv):
+        calls.append(argv)
+        return _summary(0.2, initial="--refiner" in argv)
+
+    monkeypatch.setattr(infer.cli, "main", fake_main)
+    report = adapt.test(tmp_path / "w", tmp_path / "data", tmp_path / "w", tmp_path / "cache",
+                        overlays=2, instances=6, refiner=tmp_path / "w" / "refiner")
+    (val, test) = calls
+    assert "--refiner" not in val  # the val scenes choose the overlay threshold: boxes alone
+    i = test.index("--refiner")
+    assert test[i + 1] == str(tmp_path / "w" / "refiner")
+    # Scenes of --instances 6 hold 3 to 9 instances (datagen's spread 0.5).
+    assert val[val.index("--max-detections") + 1] == test[test.index("--max-detections") + 1] \
+        == "9"
+    assert report["overlay_threshold"] == pytest.approx(0.27)  # the val run's box F1 threshold
+    assert report["test"]["pose_ap_initial"] == pytest.approx(0.7)
+    assert "pose_ap_initial" not in report["val"]
+
+
+def small_refiner(args, records):
+    """``--refiner-config tiny`` at the refiner tests' smallest settings (4 fake devices)."""
+    c = REFINER_CONFIG(args, records)
+    c.batch_size = 4
+    c.data.update(num_hypotheses=3, max_symmetries=8)
+    c.refine.update(num_matches=16, max_faces=256)
+    c.optim.warmup_steps = 1
+    c.eval.update(num_examples=4, batch_size=4, num_steps=1)
+    c.checkpoint.async_save = False
+    return c
+
+
+REFINER_CONFIG = adapt.refiner_config
+MEASURE = adapt.measure_step_seconds
+#: The refiner's step time in the test below: measuring it costs one more compilation of the
+#: refiner's step (a minute on 2 cores); the measurement is the detector's code
+#: (test_measure_step_seconds_times_the_configs_trainer).
+REFINER_STEP_SECONDS = 0.5
+
+
+def test_measure_step_seconds_times_the_configs_trainer(monkeypatch):
+    """The probe runs the trainer of ``config.trainer`` on a copy of the config without
+    evaluations and times TIMED_STEPS steps after 3 untimed ones."""
+    import train.trainer_refiner
+    from train.configs.refiner import get_config
+
+    seen = []
+
+    class Probe:
+        def __init__(self, config, workdir):
+            seen.append((config.eval.every_steps, config.init_from))
+            self.steps = 0
+
+        def next_batch(self):
+            return {}
+
+        def train_step(self, batch):
+            self.steps += 1
+            return self.steps
+
+        def close(self):
+            seen.append(self.steps)
+
+    monkeypatch.setattr(train.trainer_refiner, "RefinerTrainer", Probe)
+    config = get_config("tiny")
+    config.init_from = "/elsewhere"
+    assert adapt.measure_step_seconds(config) > 0
+    assert seen == [(0, ""), 3 + adapt.TIMED_STEPS]
+    assert config.eval.every_steps == 200 and config.init_from == "/elsewhere"  # a copy
+
+
+def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypatch):
+    monkeypatch.setattr(adapt, "refiner_config", small_refiner)
+    monkeypatch.setattr(adapt, "measure_step_seconds", lambda c: (
+        REFINER_STEP_SECONDS if c.trainer == "refiner" else MEASURE(c)))
     w = tmp_path / "w"
     argv = ["--meshes", "procedural:2", "--seed", "3", "--workdir", str(w), "--minutes", "0.15",
             "--config", "tiny", "--train-scenes", "2", "--test-scenes", "1", "--resolution",
-            "96", "80", "--spp", "1", "--instances", "3", "--overlays", "1"]
+            "96", "80", "--spp", "1", "--instances", "3", "--overlays", "1",
+            "--refiner-minutes", "0.06"]
     report = adapt.main(argv)
 
     # Three disjoint scene sets of the same parts: val and test are shards of one held-out set.
@@ -35,27 +161,47 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path):
                            if p.is_dir())
               for name, folder in (("train", "train"), ("val", "val"), ("test", "val"))}
     assert scenes["val"] and scenes["test"] and not set(scenes["val"]) & set(scenes["test"])
-    # The budget: the steps that fit 85% of the minutes at the measured step time.
+    # The budgets: the steps that fit 85% of each model's minutes at its measured step time.
     budget = json.loads((w / "adapt.json").read_text())
-    assert budget["steps"] == max(adapt.NUM_EVALS, int(0.15 * 60 * (1 - adapt.EVAL_SHARE)
-                                                       / budget["step_seconds"]))
+    for name, minutes in (("detector", 0.15), ("refiner", 0.06)):
+        entry = budget[name]
+        assert entry["steps"] == max(adapt.NUM_EVALS, int(minutes * 60 * (1 - adapt.EVAL_SHARE)
+                                                          / entry["step_seconds"]))
+        assert entry["minutes"] == minutes and entry["config"] == "tiny"
+    assert budget["refiner"] == {"steps": 6, "step_seconds": REFINER_STEP_SECONDS,
+                                 "minutes": 0.06, "config": "tiny"}  # int(0.06 * 51 / 0.5)
     run = RunDir(w)
-    assert run.checkpoint_steps()[-1] == budget["steps"]
+    assert run.checkpoint_steps()[-1] == budget["detector"]["steps"]
     model, cfg, step = load_detector(w)  # an ordinary run directory
     assert cfg.variant == "tiny/16" and step in run.checkpoint_steps()
+    # The refiner: an ordinary 3PT-R run on the same records, trained to its planned steps.
+    refiner_run = RunDir(w / "refiner", model="refiner")
+    assert (w / "refiner" / "refiner.json").exists()
+    assert refiner_run.checkpoint_steps()[-1] == budget["refiner"]["steps"]
+    assert refiner_run.read_config()["data_dir"] == str((w / "records").resolve())
+    assert load_refiner(w / "refiner")[1].variant == "tiny/16"
 
     assert set(report["test"]) == {"box_ap", "box_ap50", "box_f1", "box_f1_threshold",
-                                   "pose_ap", "pose_ap_mssd", "pose_ap_mspd"}
+                                   *adapt.POSE_FIGURES,
+                                   *(f"{k}_initial" for k in adapt.POSE_FIGURES)}
+    assert set(report["val"]) == {"box_ap", "box_ap50", "box_f1", "box_f1_threshold",
+                                  *adapt.POSE_FIGURES}
     for value in (*report["test"].values(), *report["val"].values()):
         assert 0.0 <= value <= 1.0
     assert report["overlay_threshold"] == report["val"]["box_f1_threshold"]
-    assert json.loads((w / "report.json").read_text())["steps"] == budget["steps"]
+    saved = json.loads((w / "report.json").read_text())
+    assert saved["steps"] == budget["detector"]["steps"]
+    assert saved["refiner_steps"] == budget["refiner"]["steps"]
+    assert saved["refiner"] == str(w / "refiner")
     overlays = sorted((w / "test" / "overlays").glob("*.png"))
     assert len(overlays) == 1 and cv2.imread(str(overlays[0])).shape[1] >= 640
 
-    # Again: every stage is found done; training does not run another step.
+    # Again: every stage is found done; neither training runs another step.
     mtime = (w / "adapt.json").stat().st_mtime
+    checkpoints = {p: p.stat().st_mtime for p in (w / "refiner").rglob("*") if p.is_file()}
     again = adapt.main(argv)
     assert (w / "adapt.json").stat().st_mtime == mtime
-    assert run.checkpoint_steps()[-1] == budget["steps"]
+    assert run.checkpoint_steps()[-1] == budget["detector"]["steps"]
+    assert {p: p.stat().st_mtime for p in (w / "refiner").rglob("*") if p.is_file()} \
+        == checkpoints
     assert again["test"] == report["test"]

@@ -1,0 +1,68 @@
+"""``python -m demo``: what it passes to ``train.adapt`` and what it reports (the stages faked;
+the real stages are tests/train/test_adapt.py's)."""
+
+import json
+
+import pytest
+
+import demo.__main__ as demo
+from train import adapt
+
+
+def _figures(pose_ap: float, refined: bool) -> dict:
+    figs = {"box_ap": 0.3, "box_ap50": 0.5, "box_f1": 0.4, "box_f1_threshold": 0.2,
+            "pose_ap": pose_ap, "pose_ap_mm": pose_ap / 2, "pose_ap_mssd": pose_ap,
+            "pose_ap_mspd": pose_ap, "segm_ap": 0.25}
+    if refined:
+        figs.update({f"{k}_initial": 0.1 for k in adapt.POSE_FIGURES})
+    return figs
+
+
+def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monkeypatch,
+                                                                 capsys):
+    calls = {}
+
+    def fake_main(argv):
+        calls["adapt"] = argv
+        w = tmp_path / "out" / "adapted"
+        w.mkdir(parents=True)
+        return {"test": _figures(0.3, refined=True), "refiner": str(w / "refiner"),
+                "overlays": str(w / "test" / "overlays")}
+
+    def fake_test(workdir, data, out, cache, overlays, instances, refiner=None):
+        calls["zero_shot"] = (workdir, refiner)
+        # A worse "after" than "before" is reported as it is.
+        return {"test": _figures(0.05, refined=refiner is not None),
+                "overlays": str(out / "test" / "overlays")}
+
+    monkeypatch.setattr(adapt, "main", fake_main)
+    monkeypatch.setattr(adapt, "generate", lambda *a, **k: None)
+    monkeypatch.setattr(adapt, "test", fake_test)
+    report = demo.main(["--out", str(tmp_path / "out")])
+
+    argv = calls["adapt"]
+    assert float(argv[argv.index("--refiner-minutes") + 1]) > 0  # a refiner by default
+    # The zero-shot parts are refined by the adapted run's refiner (it never saw them either).
+    assert calls["zero_shot"] == (tmp_path / "out" / "adapted",
+                                  tmp_path / "out" / "adapted" / "refiner")
+    saved = json.loads((tmp_path / "out" / "report.json").read_text())
+    for setting in ("adapted", "zero_shot"):
+        assert saved[setting]["test"]["pose_ap_initial"] == pytest.approx(0.1)
+        assert saved[setting]["test"]["pose_ap_mm_initial"] == pytest.approx(0.1)
+    assert report["zero_shot"]["test"]["pose_ap"] == pytest.approx(0.05)
+    out = capsys.readouterr().out.split("done in")[1]
+    assert out.count("before refinement: 6D AP 0.100, AP-mm 0.100, segm AP 0.100") == 2
+    assert "after refinement:  6D AP 0.300, AP-mm 0.150, segm AP 0.250" in out
+    assert "after refinement:  6D AP 0.050, AP-mm 0.025, segm AP 0.250" in out
+
+
+def test_demo_without_refiner_reports_object_generation(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(adapt, "main", lambda argv: {
+        "test": _figures(0.3, refined=False), "refiner": None, "overlays": "o"})
+    monkeypatch.setattr(adapt, "generate", lambda *a, **k: None)
+    monkeypatch.setattr(adapt, "test", lambda *a, refiner=None, **k: {
+        "test": _figures(0.05, refined=refiner is not None), "overlays": "o"})
+    demo.main(["--out", str(tmp_path), "--refiner-minutes", "0"])
+    out = capsys.readouterr().out
+    assert out.count("object generation (no refiner): 6D AP") == 2
+    assert "refinement" not in out
