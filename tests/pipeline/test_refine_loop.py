@@ -10,6 +10,7 @@ network learns the training crops' antialiasing; the oracle cannot), and the ima
 itself is checked against a block mean.
 """
 
+import dataclasses
 import warnings
 
 import jax
@@ -18,8 +19,10 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from infer.refine import RefineObject, SceneRefiner
 from threept_jax.data.refiner_input import RefinerMeshes
 from threept_jax.geometry.camera import look_at
+from threept_jax.models.configs import get_refiner_config
 from threept_jax.pipeline.refine_loop import (
     LoopSettings,
     antialiased_crops,
@@ -179,6 +182,21 @@ def test_two_instances_converge_in_one_view(scene, result):
         pasted = paste_masks(result.mask_logits[n], result.boxes[n], HW)[0]
         truth = fg & ((np.arange(HW[1]) < HW[1] // 2) == (n == 0))[None]
         assert (pasted & truth).sum() / (pasted | truth).sum() > 0.9
+
+
+def test_scene_refiner_runs_a_network_function(meshes, scene):
+    """``SceneRefiner`` with a parameter-free network function (the oracle, as bench/heldout.py
+    uses it for its upper bound) refines the scene's two instances like the bare loop."""
+    tless = meshes[0]
+    T_gt, args = scene
+    config = dataclasses.replace(get_refiner_config("tiny"), crop_size=CROP, output_size=MAP)
+    refiner = SceneRefiner(ORACLE, config, SETTINGS, [RefineObject(18, tless, np.eye(4)[None])],
+                           loop=LOOP)
+    out = refiner([args["images"][0]], K_FULL[None], None, [18, 18], list(args["hypotheses"]))
+    for r, T in zip(out, T_gt):
+        deg, mm = _errors(np.asarray(r.T_world_obj, np.float64), T)
+        assert deg < 0.2 and mm < 1.0, (deg, mm)
+    assert refiner.traces == 1
 
 
 def _same_poses(a, b):
