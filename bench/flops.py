@@ -16,6 +16,19 @@ import numpy as np
 
 from threept_jax.models.configs import decode_variant
 
+#: Peak dense bf16 FLOP/s of known accelerators (vendor datasheets, without sparsity).
+PEAK_BF16 = {"H100": 989e12, "H200": 989e12, "A100": 312e12}
+
+
+def mfu_note(achieved: float) -> str:
+    """``", MFU x% of peak bf16"`` for an accelerator of :data:`PEAK_BF16` (all local devices
+    together), else "" (CPUs have no datasheet figure here: the matmul ratio stands)."""
+    dev = jax.devices()[0]
+    peak = next((p for k, p in PEAK_BF16.items() if k in dev.device_kind), None)
+    if jax.default_backend() == "cpu" or peak is None:
+        return ""
+    return f", MFU {achieved / (peak * len(jax.devices())):.1%} of peak bf16"
+
 
 def vit_forward_flops(variant: str, n_tokens: int) -> float:
     """Analytic FLOPs of one ViT forward over ``n_tokens`` tokens.

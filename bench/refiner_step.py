@@ -47,9 +47,8 @@ sys.path.insert(0, str(ROOT))
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-from flops import cost_flops, matmul_flops_per_s, vit_forward_flops  # noqa: E402
+from flops import cost_flops, matmul_flops_per_s, mfu_note, vit_forward_flops  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
-from train_step import PEAK_BF16  # noqa: E402
 
 from threept_jax.data.detector_input import pad_symmetries  # noqa: E402
 from threept_jax.data.refiner_input import (  # noqa: E402
@@ -247,10 +246,7 @@ def main() -> None:
                 f"mask {r['coverage']:.0%} of the map); {flops / 1e9:.2f} GFLOP/step ({src}; "
                 f"analytic encoder count {r['analytic'] / 1e9:.2f}), "
                 f"{achieved / 1e9:.1f} GFLOP/s = {achieved / ref:.3f} x the matmul reference")
-        peak = next((p for k, p in PEAK_BF16.items() if k in dev.device_kind), None)
-        if accel and peak:
-            line += f", MFU {achieved / (peak * len(jax.devices())):.1%} of peak bf16"
-        print(line, flush=True)
+        print(line + mfu_note(achieved), flush=True)
 
 
 if __name__ == "__main__":

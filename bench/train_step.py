@@ -26,16 +26,13 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flops import cost_flops, matmul_flops_per_s, vit_forward_flops
+from flops import cost_flops, matmul_flops_per_s, mfu_note, vit_forward_flops
 
 from threept_jax.losses.detection import DetectorLossConfig
 from threept_jax.models.configs import DetectorConfig
 from train import sharding
 from train import trainer_detector as td
 from train.configs import detector as detector_configs
-
-#: Peak dense bf16 FLOP/s of known accelerators (vendor datasheets, without sparsity).
-PEAK_BF16 = {"H100": 989e12, "H200": 989e12, "A100": 312e12}
 
 #: variant -> (tile, render, templates per example, max instances, batch on CPU, on GPU)
 SETUPS = {
@@ -142,10 +139,7 @@ def main() -> None:
                 f"{r['examples_per_s']:.3g} examples/s; {flops / 1e9:.1f} GFLOP/step ({src}; "
                 f"analytic ViT count {r['analytic'] / 1e9:.1f}), {achieved / 1e9:.1f} GFLOP/s "
                 f"= {achieved / ref:.2f} x the matmul reference")
-        peak = next((p for k, p in PEAK_BF16.items() if k in dev.device_kind), None)
-        if accel and peak:
-            line += f", MFU {achieved / (peak * len(jax.devices())):.1%} of peak bf16"
-        print(line, flush=True)
+        print(line + mfu_note(achieved), flush=True)
 
 
 if __name__ == "__main__":
