@@ -152,19 +152,25 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--units", default="mm", choices=("mm", "cm", "m", "in"),
                    help="length unit of the mesh files")
     i.add_argument("--image", action="append", required=True, help="an RGB image (repeat for views)")
-    i.add_argument("--K", action="append", metavar="fx,fy,cx,cy",
-                   help="intrinsics in pixels, one per image (or use --cameras)")
-    i.add_argument("--cameras", type=pathlib.Path,
-                   help='JSON list, one per image: {"K": 3x3, "T_cam_world": 4x4 (mm, multi-view), '
-                        '"calibration_size": [W, H] (optional)}')
-    i.add_argument("--calibration-size", type=_int_at_least(1), nargs=2, metavar=("W", "H"),
-                   help="image size the intrinsics were calibrated at, when the images are "
-                        "resized: K is rescaled to each image (pixel centres at integers: "
-                        "cx' = (cx + 0.5) * sx - 0.5)")
+    camera_options(i, "image")
     from infer.track_cli import add_track_parser
 
     add_track_parser(sub)
     return parser
+
+
+def camera_options(p: argparse.ArgumentParser, per: str) -> None:
+    """``--K`` / ``--cameras`` / ``--calibration-size``: the cameras, one per ``per`` (image,
+    view), read by ``_cameras``."""
+    p.add_argument("--K", action="append", metavar="fx,fy,cx,cy",
+                   help=f"intrinsics in pixels, one per {per} (or use --cameras)")
+    p.add_argument("--cameras", type=pathlib.Path,
+                   help=f'JSON list, one per {per}: {{"K": 3x3, "T_cam_world": 4x4 (mm, needed '
+                        'for several views), "calibration_size": [W, H] (optional)}')
+    p.add_argument("--calibration-size", type=_int_at_least(1), nargs=2, metavar=("W", "H"),
+                   help=f"image size the intrinsics were calibrated at, when the {per}s are "
+                        "resized: K is rescaled to each image (pixel centres at integers: "
+                        "cx' = (cx + 0.5) * sx - 0.5)")
 
 
 def load_models(args):

@@ -40,6 +40,7 @@ from infer.cli import (
     _int_at_least,
     _number_in,
     _read_rgb,
+    camera_options,
     detector_options,
     load_models,
     parse_meshes,
@@ -70,14 +71,7 @@ def add_track_parser(sub) -> argparse.ArgumentParser:
                      help="a video file (one view; any format OpenCV reads)")
     p.add_argument("--max-frames", type=_int_at_least(1), default=None,
                    help="stop after this many frames")
-    p.add_argument("--K", action="append", metavar="fx,fy,cx,cy",
-                   help="intrinsics in pixels, one per view (or use --cameras)")
-    p.add_argument("--cameras", type=pathlib.Path,
-                   help='JSON list, one per view: {"K": 3x3, "T_cam_world": 4x4 (mm, needed for '
-                        'several views), "calibration_size": [W, H] (optional)}')
-    p.add_argument("--calibration-size", type=_int_at_least(1), nargs=2, metavar=("W", "H"),
-                   help="image size the intrinsics were calibrated at, when the frames are "
-                        "resized")
+    camera_options(p, "view")
     p.add_argument("--init", type=pathlib.Path, metavar="FILE",
                    help='initial poses: JSON list of {"obj_id": int, "T_world_obj": 4x4 (mm; '
                         'the camera frame for one view)}; without it the first frame is '
