@@ -1,12 +1,16 @@
 """``python -m train.adapt``: the whole adaptation command at toy size, run twice (resume)."""
 
+import functools
 import json
 
 import cv2
 import pytest
 
+from infer import api
 from infer.checkpoint import load_detector, load_refiner
+from infer.refine import SceneRefiner
 from threept_jax.data.run_dir import RunDir
+from threept_jax.pipeline.refine_loop import LoopSettings
 from train import adapt
 
 
@@ -147,6 +151,9 @@ def test_measure_step_seconds_times_the_configs_trainer(monkeypatch):
 
 def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypatch):
     monkeypatch.setattr(adapt, "refiner_config", small_refiner)
+    # The test stage's refinement at the BOP runner tests' size (its loop is tested elsewhere).
+    monkeypatch.setattr(api, "SceneRefiner", functools.partial(
+        SceneRefiner, loop=LoopSettings(iterations=1), num_hypotheses=2))
     monkeypatch.setattr(adapt, "measure_step_seconds", lambda c: (
         REFINER_STEP_SECONDS if c.trainer == "refiner" else MEASURE(c)))
     w = tmp_path / "w"
