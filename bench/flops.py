@@ -30,6 +30,18 @@ def mfu_note(achieved: float) -> str:
     return f", MFU {achieved / (peak * len(jax.devices())):.1%} of peak bf16"
 
 
+def matmul_reference() -> tuple[bool, float]:
+    """Prints the backend and the FLOP/s of the in-process matmul reference (bf16 8192^3 on an
+    accelerator, float32 2048^3 on CPU); returns (on an accelerator, that FLOP/s)."""
+    backend, dev = jax.default_backend(), jax.devices()[0]
+    accel = backend != "cpu"
+    print(f"backend {backend}, {len(jax.devices())} x {dev.device_kind}")
+    dtype = jnp.bfloat16 if accel else jnp.float32
+    ref = matmul_flops_per_s(dtype, 8192 if accel else 2048)
+    print(f"reference: {np.dtype(dtype).name} matmul {ref / 1e9:.1f} GFLOP/s per process")
+    return accel, ref
+
+
 def vit_forward_flops(variant: str, n_tokens: int) -> float:
     """Analytic FLOPs of one ViT forward over ``n_tokens`` tokens.
 

@@ -46,8 +46,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-from flops import cost_flops, matmul_flops_per_s, mfu_note, vit_forward_flops  # noqa: E402
+from flops import cost_flops, matmul_reference, mfu_note, vit_forward_flops  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from threept_jax.data.detector_input import pad_symmetries  # noqa: E402
@@ -220,14 +219,8 @@ def main() -> None:
         parser.error(f"--steps must be >= 1, got {args.steps}")
     if args.batch is not None and args.batch < 1:
         parser.error(f"--batch must be >= 1, got {args.batch}")
-    backend = jax.default_backend()
-    accel = backend != "cpu"
+    accel, ref = matmul_reference()
     variants = args.variants or (["tiny", "cpu", "small"] if accel else ["tiny", "cpu"])
-    dev = jax.devices()[0]
-    print(f"backend {backend}, {len(jax.devices())} x {dev.device_kind}")
-    ref_dtype = jnp.bfloat16 if accel else jnp.float32
-    ref = matmul_flops_per_s(ref_dtype, 8192 if accel else 2048)
-    print(f"reference: {np.dtype(ref_dtype).name} matmul {ref / 1e9:.1f} GFLOP/s per process")
     for v in variants:
         try:
             r = bench_variant(v, args.steps, args.batch)

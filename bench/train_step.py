@@ -24,9 +24,8 @@ import argparse
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
-from flops import cost_flops, matmul_flops_per_s, mfu_note, vit_forward_flops
+from flops import cost_flops, matmul_reference, mfu_note, vit_forward_flops
 
 from threept_jax.losses.detection import DetectorLossConfig
 from threept_jax.models.configs import DetectorConfig
@@ -120,14 +119,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=5, help="warm steps to average")
     parser.add_argument("--batch", type=int, default=None, help="override the batch size")
     args = parser.parse_args()
-    backend = jax.default_backend()
-    accel = backend != "cpu"
+    accel, ref = matmul_reference()
     variants = args.variants or (["tiny", "S/16", "B/16"] if accel else ["tiny", "S/16"])
-    dev = jax.devices()[0]
-    print(f"backend {backend}, {len(jax.devices())} x {dev.device_kind}")
-    ref_dtype = jnp.bfloat16 if accel else jnp.float32
-    ref = matmul_flops_per_s(ref_dtype, 8192 if accel else 2048)
-    print(f"reference: {np.dtype(ref_dtype).name} matmul {ref / 1e9:.1f} GFLOP/s per process")
     for v in variants:
         r = bench_variant(v, args.steps, accel, args.batch)
         flops = r["flops"] if r["flops"] else r["analytic"]

@@ -16,6 +16,7 @@ from flax import nnx
 
 import infer
 from infer.refine import SceneRefiner, refine_objects
+from tests.fixtures.poses import pose_z
 from threept_jax.models.configs import get_refiner_config
 from threept_jax.models.refiner import Refiner
 from threept_jax.pipeline.refinement import RefineSettings
@@ -27,14 +28,6 @@ K = np.array([[120.0, 0, 63.5], [0, 120.0, 47.5], [0, 0, 1]])
 def _box_mesh(extents, name):
     tm = trimesh.creation.box(extents)
     return Mesh(np.asarray(tm.vertices, np.float32), np.asarray(tm.faces, np.int32), name=name)
-
-
-def _pose(x, y, z, angle_deg=0.0):
-    T = np.eye(4)
-    a = np.radians(angle_deg)
-    T[:3, :3] = [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]
-    T[:3, 3] = [x, y, z]
-    return T
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +55,7 @@ def refiner_models(tmp_path_factory):
 def test_refine_keeps_order_and_initial_poses_and_does_not_retrace_within_a_bin(refiner_models):
     _, meshes, models = refiner_models
     image = np.random.default_rng(0).integers(0, 256, (96, 128, 3), dtype=np.uint8)
-    poses = [(1, _pose(-40, 0, 600, 10)), (2, _pose(30, 10, 700)), (1, _pose(10, -20, 650, 40))]
+    poses = [(1, pose_z(-40, 0, 600, 10)), (2, pose_z(30, 10, 700)), (1, pose_z(10, -20, 650, 40))]
     out = infer.refine([image], [K], meshes, poses, models)
     assert [r.obj_id for r in out] == [1, 2, 1]
     for r, (_, T) in zip(out, poses):
@@ -76,7 +69,7 @@ def test_refine_keeps_order_and_initial_poses_and_does_not_retrace_within_a_bin(
     refiner = models.scene_refiner(refine_objects(meshes))
     assert refiner.traces == 1
     # Four instances fall in the same bin as three: the compiled loop is reused.
-    infer.refine([image], [K], meshes, poses + [(2, _pose(0, 0, 800))], models)
+    infer.refine([image], [K], meshes, poses + [(2, pose_z(0, 0, 800))], models)
     assert refiner.traces == 1
 
 
@@ -105,18 +98,18 @@ def test_refine_errors_name_the_problem(refiner_models):
     models, meshes, _ = refiner_models
     image = np.zeros((96, 128, 3), np.uint8)
     with pytest.raises(KeyError, match=r"objects \[7\] are not in this refiner's object set"):
-        infer.refine([image], [K], meshes, [(7, _pose(0, 0, 500))], models)
+        infer.refine([image], [K], meshes, [(7, pose_z(0, 0, 500))], models)
     with pytest.raises(ValueError, match="not finite"):
         infer.refine([image], [K], meshes, [(1, np.full((4, 4), np.nan))], models)
     with pytest.raises(ValueError, match="no refiner loaded"):
-        infer.refine([image], [K], meshes, [(1, _pose(0, 0, 500))],
+        infer.refine([image], [K], meshes, [(1, pose_z(0, 0, 500))],
                      infer.Models(None, None, None, None))
     with pytest.raises(ValueError, match="detector run .* or a refiner run"):
         infer.load()
     rig = [infer.Camera(K, T_cam_world=np.eye(4)), infer.Camera(K, T_cam_world=np.eye(4))]
     with pytest.raises(ValueError, match="one size"):
         infer.refine([image, np.zeros((64, 64, 3), np.uint8)], rig, meshes,
-                     [(1, _pose(0, 0, 500))], models)
+                     [(1, pose_z(0, 0, 500))], models)
     assert isinstance(models.scene_refiner(refine_objects(meshes)), SceneRefiner)
 
 
@@ -125,7 +118,7 @@ def test_track_refines_from_the_previous_pose_and_redetects_under_the_score(refi
     objects = both.onboard(meshes)
     rng = np.random.default_rng(2)
     frames = [rng.integers(0, 256, (96, 128, 3), dtype=np.uint8) for _ in range(3)]
-    init = [(1, _pose(0, 0, 600)), (2, _pose(-30, 0, 700)), (1, _pose(30, 10, 650, 30))]
+    init = [(1, pose_z(0, 0, 600)), (2, pose_z(-30, 0, 700)), (1, pose_z(30, 10, 650, 30))]
     # Never re-detect: each frame starts from the previous frame's refined pose.
     got = list(infer.track(frames, [K], objects, both, init, min_score=-np.inf))
     assert [f.redetected for f in got] == [False, False, False]

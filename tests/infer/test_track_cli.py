@@ -21,6 +21,7 @@ from infer import api, track_cli
 from infer.cli import main
 from infer.refine import SceneRefiner
 from infer.scene import Instances
+from tests.fixtures.poses import pose_z
 from tests.fixtures.run_dirs import tiny_detector_run, tiny_refiner_run
 from threept_jax.pipeline.refine_loop import LoopSettings
 
@@ -28,15 +29,7 @@ K = "90,90,47.5,31.5"  # fx,fy,cx,cy of the 64 x 96 frames
 HW = (64, 96)
 
 
-def _pose(x, y, z, angle_deg=0.0):
-    T = np.eye(4)
-    a = np.radians(angle_deg)
-    T[:3, :3] = [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]
-    T[:3, 3] = [x, y, z]
-    return T
-
-
-INIT = [(1, _pose(0, 0, 600)), (2, _pose(-30, 0, 700)), (1, _pose(30, 10, 650, 30))]
+INIT = [(1, pose_z(0, 0, 600)), (2, pose_z(-30, 0, 700)), (1, pose_z(30, 10, 650, 30))]
 
 
 @pytest.fixture(scope="module")
