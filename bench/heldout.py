@@ -45,7 +45,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import infer  # noqa: E402
-from infer.bop_runner import in_view  # noqa: E402
+from infer.bop_runner import Results, in_view, mask_box  # noqa: E402
 from infer.refine import NUM_HYPOTHESES, RefineObject, SceneRefiner  # noqa: E402
 from infer.scene import Instance, assign_pixels  # noqa: E402
 from threept_jax.data import bop  # noqa: E402
@@ -55,24 +55,6 @@ from threept_jax.pipeline.refine_loop import LoopSettings  # noqa: E402
 from threept_jax.render.mesh import prepare_mesh, to_raster_mesh  # noqa: E402
 from threept_jax.render.raster import render  # noqa: E402
 from threept_jax.testing.refiner_oracle import make_oracle, xyz_colored  # noqa: E402
-
-
-@dataclasses.dataclass
-class Rows:
-    """The 6D and 2D result rows of one method row of the table."""
-
-    poses: list = dataclasses.field(default_factory=list)
-    masks: list = dataclasses.field(default_factory=list)
-
-    def add(self, scene_id, im_id, obj_id, score, T_cam_obj, mask, seconds):
-        self.poses.append(bop.PoseEstimate(scene_id, im_id, obj_id, score, T_cam_obj[:3, :3],
-                                           T_cam_obj[:3, 3], seconds))
-        ys, xs = np.nonzero(mask)
-        box = ((0.0, 0.0, 0.0, 0.0) if len(xs) == 0 else
-               (float(xs.min()), float(ys.min()), float(xs.max() - xs.min() + 1),
-                float(ys.max() - ys.min() + 1)))
-        self.masks.append(bop.Detection2D(scene_id, im_id, obj_id, score, box,
-                                          bop.mask_to_rle(mask), seconds))
 
 
 def visible(T_cam_obj: np.ndarray, center: np.ndarray, K: np.ndarray, hw) -> bool:
@@ -122,8 +104,8 @@ def main() -> None:
     ds = bop.BopDataset(args.dataset)
     groups = ds.multiview_targets()
     if groups is None:
-        raise SystemExit(f"error: {args.dataset} has no test_targets_multiview_bop25.json; "
-                         "generate it with python -m datagen.generate --views 3")
+        raise SystemExit(f"error: {args.dataset} has no {bop.MULTIVIEW_TARGETS_FILE}; "
+                         "generate the dataset with python -m datagen.generate --views 3")
     groups = groups[: args.max_groups]
     split = ds.split(args.split)
     info = ds.models()
@@ -145,13 +127,18 @@ def main() -> None:
             loop=LoopSettings(antialias=1))
     example = RefinerExampleConfig()
     rng = np.random.default_rng(args.seed)
-    table: dict[str, Rows] = {}
+    table: dict[str, Results] = {}
     images_run = []
     detector_options = dict(score_threshold=args.score_threshold,
                             max_detections=args.max_detections)
 
-    def rows(name: str) -> Rows:
-        return table.setdefault(name, Rows())
+    def rows(name: str) -> Results:
+        return table.setdefault(name, Results())
+
+    def add(name: str, scene_id: int, im_id: int, obj_id: int, score: float, T, mask,
+            seconds: float) -> None:
+        box = mask_box(mask) or (0, 0, 0, 0)  # the table scores masks, not boxes
+        rows(name).add(scene_id, im_id, obj_id, score, T, mask, box, seconds)
 
     for group in tqdm(groups, desc="captures", unit="capture", dynamic_ncols=True):
         scene = split.scene(group.scene_id)
@@ -199,8 +186,8 @@ def main() -> None:
                         for j, v in enumerate(views):
                             T = T_cw[j] @ x.T_world_obj
                             if V == 1 or visible(T, centers[x.obj_id], Ks[j], hw):
-                                rows(name).add(group.scene_id, ids[v], x.obj_id, x.score, T,
-                                               x.masks[j], seconds)
+                                add(name, group.scene_id, ids[v], x.obj_id, x.score, T,
+                                    x.masks[j], seconds)
                 if args.no_diagnostic:
                     continue
                 # Diagnostic: ground-truth poses perturbed, K = 8, for instances visible in the
@@ -231,9 +218,8 @@ def main() -> None:
                             if mask is None:  # the initial diagnostic has no masks
                                 mask = np.zeros(hw, bool)
                             if V == 1 or visible(T, centers[x.obj_id], Ks[j], hw):
-                                rows(f"diagnostic, GT init, {V} view{'s' * (V > 1)}: "
-                                     f"{name}").add(group.scene_id, ids[v], x.obj_id, 1.0, T,
-                                                    mask, 0.0)
+                                add(f"diagnostic, GT init, {V} view{'s' * (V > 1)}: {name}",
+                                    group.scene_id, ids[v], x.obj_id, 1.0, T, mask, 0.0)
 
     report = evaluate(args, table, images_run)
     print(f"\n{len(groups)} captures x {len(groups[0].views)} views, {len(images_run)} images, "
@@ -258,7 +244,7 @@ def evaluate(args, table: dict, images_run) -> dict:
             poses = [dataclasses.replace(p, time=-1.0) for p in rows.poses]
             pose = evaluate_pose_results(args.dataset, poses, split=args.split,
                                          targets_path=targets)
-            segm = evaluate_detection_results(args.dataset, rows.masks, split=args.split,
+            segm = evaluate_detection_results(args.dataset, rows.dets2d, split=args.split,
                                               targets_path=targets)
             out[name] = {"ap": pose.ap, "ap_mm": pose.ap_mm,
                          "ar": (pose.ar_mssd + pose.ar_mspd) / 2,

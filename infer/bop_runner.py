@@ -49,6 +49,8 @@ def select_groups_and_objects(args, ds) -> tuple[list[tuple[View, ...]], dict]:
     never onboarded, so ``models_info.json`` may list objects whose meshes are absent; a
     selected object without its mesh is an error naming it and the expected file.
     """
+    from threept_jax.data.bop import MULTIVIEW_TARGETS_FILE
+
     models_dir = ds.models_dir(args.models_subdir)
     models = ds.models(args.models_subdir)
     if args.obj_ids:
@@ -61,8 +63,8 @@ def select_groups_and_objects(args, ds) -> tuple[list[tuple[View, ...]], dict]:
         mv = ds.multiview_targets()
         if mv is None:
             raise FileNotFoundError(
-                f"{args.dataset_dir}/test_targets_multiview_bop25.json not found; multi-view "
-                "runs read their groups of views from it (datagen --views V writes one)")
+                f"{args.dataset_dir / MULTIVIEW_TARGETS_FILE} not found; multi-view runs "
+                "read their groups of views from it (datagen --views V writes one)")
         groups = [tuple(View(g.scene_id, im, sensor) for sensor, im in g.views) for g in mv
                   if not args.scene_ids or g.scene_id in args.scene_ids]
     elif args.targets == "all":
@@ -132,7 +134,7 @@ def _clip_box(box, hw) -> tuple[float, float, float, float]:
     return x0, y0, x1, y1
 
 
-def _mask_box(mask: np.ndarray) -> tuple[float, float, float, float] | None:
+def mask_box(mask: np.ndarray) -> tuple[float, float, float, float] | None:
     """Tight xyxy box (pixel edges) of a mask, None when it is empty."""
     ys, xs = np.nonzero(mask)
     if not len(xs):
@@ -140,12 +142,14 @@ def _mask_box(mask: np.ndarray) -> tuple[float, float, float, float] | None:
     return float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1)
 
 
-def _projected_box(points: np.ndarray, T_cam_obj: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """xyxy box of the model points projected at a pose (points behind the camera pushed to
-    z = 1 mm)."""
-    p = points.astype(np.float64) @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
-    uv = p[:, :2] / np.maximum(p[:, 2:], 1.0) * np.diag(K)[:2] + K[:2, 2] + 0.5
-    return np.concatenate([uv.min(0), uv.max(0)])
+def model_box(points: np.ndarray, T_cam_obj: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """xyxy box (pixel edges) of the model points projected at a pose
+    (``object_generation.projected_box``, whose boxes the detector's poses are fitted to)."""
+    from threept_jax.pipeline.object_generation import projected_box
+
+    T = np.asarray(T_cam_obj, np.float32)
+    return np.asarray(projected_box(np.asarray(points, np.float32), T[:3, :3], T[:3, 3],
+                                    np.asarray(K, np.float32)), np.float64)
 
 
 def in_view(center_cam: np.ndarray, K: np.ndarray, hw: tuple[int, int]) -> bool:
@@ -163,6 +167,20 @@ class Results:
 
     poses: list = dataclasses.field(default_factory=list)
     dets2d: list = dataclasses.field(default_factory=list)
+
+    def add(self, scene_id: int, im_id: int, obj_id: int, score: float, T_cam_obj: np.ndarray,
+            mask: np.ndarray, box, seconds: float) -> np.ndarray:
+        """Append one estimate: its 6D row and its 2D row (``box`` xyxy clipped to the image,
+        the RLE of ``mask``); returns the clipped box."""
+        from threept_jax.data import bop
+
+        x0, y0, x1, y1 = _clip_box(box, mask.shape)
+        self.poses.append(bop.PoseEstimate(scene_id, im_id, obj_id, score, T_cam_obj[:3, :3],
+                                           T_cam_obj[:3, 3], seconds))
+        self.dets2d.append(bop.Detection2D(scene_id, im_id, obj_id, score,
+                                           (x0, y0, x1 - x0, y1 - y0), bop.mask_to_rle(mask),
+                                           seconds))
+        return np.array([x0, y0, x1, y1])
 
     def write(self, out: pathlib.Path, stem: str) -> tuple[pathlib.Path, pathlib.Path]:
         from threept_jax.data import bop
@@ -185,8 +203,6 @@ def add_group_rows(results: Results, group, images, Ks, T_cam_world, instances, 
     box of the refiner mask in that view, else the amodal detection box (the projected model
     when the view did not detect it), clipped to the image.
     """
-    from threept_jax.data import bop
-
     drawn = []
     for v, (view, image, K) in enumerate(zip(group, images, Ks)):
         hw = image.shape[:2]
@@ -196,18 +212,13 @@ def add_group_rows(results: Results, group, images, Ks, T_cam_world, instances, 
             obj = objects[x.obj_id]
             if len(group) > 1 and not in_view(T[:3, :3] @ obj.center + T[:3, 3], K, hw):
                 continue
-            box = _mask_box(m[v]) if refined else None
+            box = mask_box(m[v]) if refined else None
             if box is None:
                 # A refined instance whose mask is empty in this view keeps its row, with the
                 # detection box and an empty RLE: its pose still counts for 6D.
-                box = x.boxes[v] if v in x.boxes else _projected_box(obj.mesh.vertices, T, K)
-            x0, y0, x1, y1 = _clip_box(box, hw)
-            results.poses.append(bop.PoseEstimate(view.scene_id, view.im_id, x.obj_id, x.score,
-                                                  T[:3, :3], T[:3, 3], elapsed))
-            results.dets2d.append(bop.Detection2D(view.scene_id, view.im_id, x.obj_id, x.score,
-                                                  (x0, y0, x1 - x0, y1 - y0),
-                                                  bop.mask_to_rle(m[v]), elapsed))
-            rows.append((i, T, np.array([x0, y0, x1, y1]), m[v]))
+                box = x.boxes[v] if v in x.boxes else model_box(obj.mesh.vertices, T, K)
+            box = results.add(view.scene_id, view.im_id, x.obj_id, x.score, T, m[v], box, elapsed)
+            rows.append((i, T, box, m[v]))
         drawn.append(rows)
     return drawn
 
@@ -462,16 +473,11 @@ def run_refine_only(args) -> dict:
         drawn = []
         for e, r in zip(rows, refined):
             T = r.T_world_obj
-            box = _mask_box(r.masks[0])
+            box = mask_box(r.masks[0])
             if box is None:  # an empty mask keeps its row: the pose still counts for 6D
-                box = _projected_box(by_id[e.obj_id].mesh.vertices, T, K)
-            x0, y0, x1, y1 = _clip_box(box, image.shape[:2])
-            results.poses.append(bop.PoseEstimate(scene_id, im_id, e.obj_id, e.score,
-                                                  T[:3, :3], T[:3, 3], total))
-            results.dets2d.append(bop.Detection2D(scene_id, im_id, e.obj_id, e.score,
-                                                  (x0, y0, x1 - x0, y1 - y0),
-                                                  bop.mask_to_rle(r.masks[0]), total))
-            drawn.append((len(drawn), T, np.array([x0, y0, x1, y1]), r.masks[0]))
+                box = model_box(by_id[e.obj_id].mesh.vertices, T, K)
+            box = results.add(scene_id, im_id, e.obj_id, e.score, T, r.masks[0], box, total)
+            drawn.append((len(drawn), T, box, r.masks[0]))
         if n < args.overlays:
             _draw(args.out / "overlays" / f"{scene_id:06d}_{im_id:06d}.png", image, drawn,
                   rows, args.overlay_threshold or 0.0, None)

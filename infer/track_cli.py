@@ -161,23 +161,21 @@ def read_init(path: pathlib.Path, obj_ids) -> list[tuple[int, np.ndarray]]:
 
 def _overlay(images, cameras, Ks, objects, poses) -> list[np.ndarray]:
     """One overlay per view: each pose's refiner-mask contour and projected box."""
+    from infer.bop_runner import model_box
     from infer.detect import Detection
     from infer.visualize import draw_detections
 
-    verts = {o.obj_id: np.asarray(o.mesh.vertices, np.float64) for o in objects}
+    meshes = {o.obj_id: o.mesh for o in objects}
     out = []
     for v, (img, cam, K) in enumerate(zip(images, cameras, Ks)):
         T_cw = np.eye(4) if cam.T_cam_world is None else np.asarray(cam.T_cam_world)
         drawn, masks = [], []
         for p in poses:
             T = T_cw @ p.T_world_obj
-            pts = verts[p.obj_id] @ T[:3, :3].T + T[:3, 3]
-            pts = pts[pts[:, 2] > 1e-6]
-            if len(pts) == 0:  # behind this camera
+            mesh = meshes[p.obj_id]
+            if (T[:3, :3] @ mesh.center + T[:3, 3])[2] <= 0:  # behind this camera
                 continue
-            uvw = pts @ np.asarray(K, np.float64).T
-            uv = uvw[:, :2] / uvw[:, 2:] + 0.5  # pixel-edge coordinates (centres at integers)
-            box = np.concatenate([uv.min(0), uv.max(0)])
+            box = model_box(mesh.vertices, T, K)
             drawn.append(Detection(p.obj_id, box, p.score, T[None], np.zeros(1), np.zeros(0)))
             masks.append(p.masks.get(v, np.zeros(img.shape[:2], bool)))
         out.append(draw_detections(img, drawn, masks))

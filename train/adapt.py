@@ -178,21 +178,12 @@ def refiner_config(args, records: pathlib.Path):
     return config
 
 
-def trainer_class(config):
-    """The trainer of ``config.trainer`` (as ``train/launch.py`` picks it)."""
-    if config.trainer == "refiner":
-        from train.trainer_refiner import RefinerTrainer
-
-        return RefinerTrainer
-    from train.trainer_detector import DetectorTrainer
-
-    return DetectorTrainer
-
-
 def measure_step_seconds(config) -> float:
     """Warm seconds per train step of ``config`` (detector or refiner) here: a throw-away run
     of its trainer in a temp folder."""
     import jax
+
+    from train.trainer import trainer_class
 
     probe = config.copy_and_resolve_references()
     probe.eval.every_steps = 0
@@ -247,6 +238,7 @@ def train(config, steps: int, workdir: pathlib.Path) -> None:
     """Train ``config``'s model to ``steps`` in ``workdir`` (resuming; nothing to do when its
     last checkpoint is at ``steps``)."""
     from threept_jax.data.run_dir import RunDir
+    from train.trainer import trainer_class
 
     done = RunDir(workdir, model=config.trainer).checkpoint_steps()
     if done and done[-1] >= steps:

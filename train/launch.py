@@ -115,15 +115,13 @@ def main(argv) -> None:
     sharding.maybe_initialize_distributed(config.distributed)
     import jax
 
-    if config.trainer == "refiner":
-        from train.trainer_refiner import RefinerTrainer as TrainerClass
-    else:
-        from train.trainer_detector import DetectorTrainer as TrainerClass
+    from train.trainer import trainer_class
 
     print(f"process {jax.process_index()}/{jax.process_count()}, devices: {jax.devices()}",
           flush=True)
     try:
-        trainer = TrainerClass(config, _WORKDIR.value, allow_config_change=_ALLOW_CHANGE.value)
+        trainer = trainer_class(config)(config, _WORKDIR.value,
+                                        allow_config_change=_ALLOW_CHANGE.value)
     except (ValueError, FileNotFoundError, KeyError) as e:
         # Everything the trainer checks before it trains: the config against the devices, the
         # data and the workdir's run.

@@ -68,24 +68,30 @@ def test_output_layout_and_manifest(reference):
     assert {int(k) for k in m["objects"]} <= {int(k) for k in info}
 
 
-def test_resume_after_a_kill_gives_the_same_bytes(reference, tmp_path, monkeypatch):
-    """A run killed inside scene 1 (after writing one of its files) resumes to the bytes of an
-    uninterrupted run; so does a scene left half written in its temporary folder."""
-    out = tmp_path / "killed"
+def _killed_after_images(monkeypatch, n: int, argv) -> None:
+    """``generate.main(argv)`` killed (KeyboardInterrupt) right after writing its n-th image."""
     real = S.BopSceneWriter.add_image
     calls = {"n": 0}
 
     def dying(self, *a, **k):
         res = real(self, *a, **k)
         calls["n"] += 1
-        if calls["n"] == 2:  # the first image of scene 1 is on disk, then the process dies
+        if calls["n"] == n:
             raise KeyboardInterrupt("simulated kill")
         return res
 
     monkeypatch.setattr(S.BopSceneWriter, "add_image", dying)
     with pytest.raises(KeyboardInterrupt):
-        generate.main(ARGS + ["--out", str(out)])
+        generate.main(argv)
     monkeypatch.setattr(S.BopSceneWriter, "add_image", real)
+
+
+def test_resume_after_a_kill_gives_the_same_bytes(reference, tmp_path, monkeypatch):
+    """A run killed inside scene 1 (after writing one of its files) resumes to the bytes of an
+    uninterrupted run; so does a scene left half written in its temporary folder."""
+    out = tmp_path / "killed"
+    # The first image of scene 1 is on disk, then the process dies.
+    _killed_after_images(monkeypatch, 2, ARGS + ["--out", str(out)])
     split = out / "train_pbr"
     assert (split / "000000").is_dir() and (split / "000001.tmp").is_dir()
     assert not (split / "000001").exists()
@@ -241,20 +247,8 @@ def test_multiview_targets_list_every_capture_after_a_resume(tmp_path, monkeypat
     """A two-view rig, two captures per scene, killed inside scene 1: the resumed run's
     targets file lists the captures of both scenes (it is written from the scenes on disk)."""
     out = tmp_path / "mv"
-    real = S.BopSceneWriter.add_image
-    calls = {"n": 0}
-
-    def dying(self, *a, **k):
-        res = real(self, *a, **k)
-        calls["n"] += 1
-        if calls["n"] == 5:  # scene 0's 4 images, then the first of scene 1
-            raise KeyboardInterrupt("simulated kill")
-        return res
-
-    monkeypatch.setattr(S.BopSceneWriter, "add_image", dying)
-    with pytest.raises(KeyboardInterrupt):
-        generate.main(MULTIVIEW + ["--out", str(out)])
-    monkeypatch.setattr(S.BopSceneWriter, "add_image", real)
+    # Scene 0's 4 images, then the first of scene 1.
+    _killed_after_images(monkeypatch, 5, MULTIVIEW + ["--out", str(out)])
     generate.main(MULTIVIEW + ["--out", str(out)])
     ds = BopDataset(out)
     got = ds.multiview_targets()

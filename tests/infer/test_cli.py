@@ -11,6 +11,7 @@ from infer import cli
 from infer.cli import _cameras, build_parser, main
 from infer.scene import Instances
 from infer.visualize import caption_band_height
+from tests.fixtures.cli import fails_naming
 
 
 def _args(tmp_path, *extra):
@@ -32,15 +33,6 @@ def files(tmp_path):
 def _images_argv(tmp_path, *extra):
     return ["images", "--workdir", str(tmp_path / "no_run"), "--out", str(tmp_path / "out"),
             "--mesh", f"1={tmp_path / 'a.ply'}", "--image", str(tmp_path / "a.png"), *extra]
-
-
-def _fails(capsys, argv, match):
-    with pytest.raises(SystemExit) as e:
-        main(argv)
-    err = capsys.readouterr().err
-    assert e.value.code == 2, err
-    assert match in err, err
-    return err
 
 
 def test_k_flags_and_camera_files_become_cameras(tmp_path):
@@ -116,14 +108,14 @@ def test_camera_with_a_bad_bottom_row_is_labelled_t_cam_world(tmp_path):
 ])
 def test_bad_numeric_options_exit_2_naming_the_flag(files, capsys, flag, value, match):
     extra = [flag, value] + (["480"] if flag == "--calibration-size" else [])
-    _fails(capsys, _images_argv(files, "--K", "60,60,31.5,23.5", *extra), match)
+    fails_naming(capsys, _images_argv(files, "--K", "60,60,31.5,23.5", *extra), match)
 
 
 def test_bad_bop_options_exit_2_naming_the_flag(tmp_path, capsys):
     base = ["bop", "--workdir", str(tmp_path), "--out", str(tmp_path / "o"), "--dataset-dir",
             str(tmp_path)]
-    _fails(capsys, base + ["--max-images", "0"], "argument --max-images: must be >= 1")
-    _fails(capsys, base + ["--obj-ids", "-2"], "argument --obj-ids: must be >= 0")
+    fails_naming(capsys, base + ["--max-images", "0"], "argument --max-images: must be >= 1")
+    fails_naming(capsys, base + ["--obj-ids", "-2"], "argument --obj-ids: must be >= 0")
 
 
 def test_input_errors_exit_2_before_loading_models(files, capsys, monkeypatch):
@@ -132,21 +124,21 @@ def test_input_errors_exit_2_before_loading_models(files, capsys, monkeypatch):
 
     monkeypatch.setattr(cli, "load_models", no_load)
     argv = _images_argv(files, "--image", str(files / "b.png"), "--K", "60,60,31.5,23.5")
-    _fails(capsys, argv, "error: 1 --K for 2 --image")
+    fails_naming(capsys, argv, "error: 1 --K for 2 --image")
     cams = files / "cams.json"
     cams.write_text(json.dumps([{"T_cam_world": np.eye(4).tolist()}]))
-    _fails(capsys, _images_argv(files, "--cameras", str(cams)), 'camera 0 has no "K"')
+    fails_naming(capsys, _images_argv(files, "--cameras", str(cams)), 'camera 0 has no "K"')
     T = np.eye(4)
     T[3] = [0, 0, 0, 2]
     K = [[60, 0, 31.5], [0, 60, 23.5], [0, 0, 1]]
     cams.write_text(json.dumps([{"K": K, "T_cam_world": T.tolist()}]))
-    err = _fails(capsys, _images_argv(files, "--cameras", str(cams)),
+    err = fails_naming(capsys, _images_argv(files, "--cameras", str(cams)),
                  "cams.json camera 0 T_cam_world")
     assert "T_cam_obj" not in err
-    _fails(capsys, _images_argv(files, "--K", "60,60,31.5,23.5", "--mesh", "2=nowhere.ply"),
+    fails_naming(capsys, _images_argv(files, "--K", "60,60,31.5,23.5", "--mesh", "2=nowhere.ply"),
            "no mesh file nowhere.ply")
     # K of a 4x larger image: its principal point lies outside this one.
-    _fails(capsys, _images_argv(files, "--K", "240,240,127.5,95.5"), "outside the 64x48 image")
+    fails_naming(capsys, _images_argv(files, "--K", "240,240,127.5,95.5"), "outside the 64x48 image")
 
 
 def test_no_detections_are_reported_on_console_and_overlay(files, capsys, monkeypatch):
@@ -205,7 +197,7 @@ def test_mesh_units_error_names_the_units_flag(files, capsys, monkeypatch):
             return [load_mesh(path, units=units) for path in meshes.values()]
 
     monkeypatch.setattr(cli, "load_models", lambda args: MeshLoadingModels())
-    err = _fails(capsys, _images_argv(files, "--K", "60,60,31.5,23.5"), "pass --units m")
+    err = fails_naming(capsys, _images_argv(files, "--K", "60,60,31.5,23.5"), "pass --units m")
     assert "units='m'" not in err and "a.ply" in err
 
 
@@ -225,8 +217,8 @@ def test_depth_range_reaches_the_detector_and_bad_ones_exit_2(files, capsys, mon
     main(_images_argv(files, "--K", "60,60,31.5,23.5", "--depth-range", "400", "900"))
     assert seen["depth_range"] == [400.0, 900.0] and seen["num_scales"] is None
     argv = _images_argv(files, "--K", "60,60,31.5,23.5", "--depth-range")
-    _fails(capsys, argv + ["0", "500"], "argument --depth-range: must be a finite number > 0")
-    _fails(capsys, argv + ["900", "400"], "argument --depth-range: ZMIN must be <= ZMAX")
+    fails_naming(capsys, argv + ["0", "500"], "argument --depth-range: must be a finite number > 0")
+    fails_naming(capsys, argv + ["900", "400"], "argument --depth-range: ZMIN must be <= ZMAX")
 
 
 def test_depth_range_option_plans_one_scale_from_the_projected_diameters():

@@ -21,6 +21,7 @@ from infer import api, track_cli
 from infer.cli import main
 from infer.refine import SceneRefiner
 from infer.scene import Instances
+from tests.fixtures.cli import fails_naming
 from tests.fixtures.poses import pose_z
 from tests.fixtures.run_dirs import tiny_detector_run, tiny_refiner_run
 from threept_jax.pipeline.refine_loop import LoopSettings
@@ -182,45 +183,36 @@ def no_models(monkeypatch):
     monkeypatch.setattr(track_cli, "load_models", fail)
 
 
-def _fails(capsys, argv, match):
-    with pytest.raises(SystemExit) as e:
-        main(argv)
-    err = capsys.readouterr().err
-    assert e.value.code == 2, err
-    assert match in err, err
-    assert "Traceback" not in err
-
-
 def test_bad_input_is_named_before_loading(env, no_models, tmp_path, capsys):
     frames, init = str(env["frames"]), str(env["init"])
     short = tmp_path / "short"
     short.mkdir()
     cv2.imwrite(str(short / "a.png"), np.zeros((*HW, 3), np.uint8))
-    _fails(capsys, _argv(env, "--frames", frames, str(short), "--K", K, "--K", K, "--init", init),
+    fails_naming(capsys, _argv(env, "--frames", frames, str(short), "--K", K, "--K", K, "--init", init),
            "different numbers of images")
     bad_video = tmp_path / "clip.mp4"
     bad_video.write_text("not a video")
-    _fails(capsys, _argv(env, "--video", str(bad_video), "--K", K, "--init", init),
+    fails_naming(capsys, _argv(env, "--video", str(bad_video), "--K", K, "--init", init),
            "OpenCV cannot open it")
     stray = tmp_path / "init.json"
     stray.write_text(json.dumps([{"obj_id": 7, "T_world_obj": np.eye(4).tolist()}]))
-    _fails(capsys, _argv(env, "--frames", frames, "--K", K, "--init", str(stray)),
+    fails_naming(capsys, _argv(env, "--frames", frames, "--K", K, "--init", str(stray)),
            "entry 0: object 7 has no mesh; add --mesh 7=PATH")
     scaled = tmp_path / "scaled.json"
     scaled.write_text(json.dumps([{"obj_id": 1, "T_world_obj": np.diag([2, 2, 2, 1]).tolist()}]))
-    _fails(capsys, _argv(env, "--frames", frames, "--K", K, "--init", str(scaled)),
+    fails_naming(capsys, _argv(env, "--frames", frames, "--K", K, "--init", str(scaled)),
            "is not a rigid transform")
-    _fails(capsys, _argv(env, "--frames", frames, "--K", K), "give --init FILE")
-    _fails(capsys, _argv(env, "--frames", frames, "--K", K, "--init", init, "--min-score", "0"),
+    fails_naming(capsys, _argv(env, "--frames", frames, "--K", K), "give --init FILE")
+    fails_naming(capsys, _argv(env, "--frames", frames, "--K", K, "--init", init, "--min-score", "0"),
            "--min-score re-detects objects: it needs --workdir")
-    _fails(capsys, _argv(env, "--frames", frames, frames, "--K", K, "--K", K, "--init", init),
+    fails_naming(capsys, _argv(env, "--frames", frames, frames, "--K", K, "--K", K, "--init", init),
            "2 views need each camera's pose")
-    _fails(capsys, _argv(env, "--frames", frames, "--init", init), "0 --K for 1 view(s)")
-    _fails(capsys, _argv(env, "--frames", str(tmp_path / "none"), "--K", K, "--init", init),
+    fails_naming(capsys, _argv(env, "--frames", frames, "--init", init), "0 --K for 1 view(s)")
+    fails_naming(capsys, _argv(env, "--frames", str(tmp_path / "none"), "--K", K, "--init", init),
            "no such folder")
-    _fails(capsys, _argv(env, "--frames", frames, "--K", "900,900,500,31.5", "--init", init),
+    fails_naming(capsys, _argv(env, "--frames", frames, "--K", "900,900,500,31.5", "--init", init),
            "outside the 96x64 image")
-    _fails(capsys, ["track", "--out", str(tmp_path), "--mesh", "1=a.ply", "--frames", frames],
+    fails_naming(capsys, ["track", "--out", str(tmp_path), "--mesh", "1=a.ply", "--frames", frames],
            "--refiner")
 
 
@@ -230,4 +222,4 @@ def test_a_mesh_in_metres_names_the_units_flag(env, monkeypatch, tmp_path, capsy
                         lambda args: infer.Models(None, None, None, None))  # refiner only
     argv = _argv(env, "--frames", str(env["frames"]), "--K", K, "--init", str(env["init"]))
     argv[argv.index(f"1={env['root'] / 'plate.ply'}")] = f"1={tmp_path / 'metres.ply'}"
-    _fails(capsys, argv, "it looks like metres: pass --units m to convert it to mm")
+    fails_naming(capsys, argv, "it looks like metres: pass --units m to convert it to mm")
