@@ -56,8 +56,8 @@ from threept_jax.data.refiner_input import (  # noqa: E402
     perturb_poses,
 )
 from threept_jax.geometry.camera import crop_intrinsics  # noqa: E402
+from threept_jax.geometry.framing import crop_boxes  # noqa: E402
 from threept_jax.models.configs import REFINER_SIZES, RefinerConfig  # noqa: E402
-from threept_jax.pipeline.refinement import crop_boxes  # noqa: E402
 from threept_jax.render.mesh import Mesh, load_mesh, prepare_mesh  # noqa: E402
 from train import sharding  # noqa: E402
 from train.configs import refiner as refiner_configs  # noqa: E402

@@ -36,6 +36,7 @@ from flops import cold_and_warm  # noqa: E402
 
 from infer.detect import SceneDetector  # noqa: E402
 from infer.onboarding import Onboarder  # noqa: E402
+from threept_jax.geometry.framing import SCALE_PRIOR  # noqa: E402
 from threept_jax.models.configs import DetectorConfig  # noqa: E402
 from threept_jax.models.detector import Detector  # noqa: E402
 from threept_jax.pipeline import pan_and_scan as pns  # noqa: E402
@@ -44,7 +45,7 @@ from threept_jax.render import Mesh  # noqa: E402
 
 def old_layout(image_hw, tile):
     """The scales and overlap inference used before: fit, then x350/128 per level."""
-    lo, hi = pns.SCALE_PRIOR
+    lo, hi = SCALE_PRIOR
     fit = tile / max(image_hw)
     return pns.tile_layout(image_hw, tile, [fit * (hi / lo) ** k for k in range(3)],
                            min(int(lo), tile // 4))

@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from threept_jax.geometry.framing import size_prior
 from threept_jax.pipeline.pan_and_scan import (
     axis_tile_starts,
     extract_tiles,
@@ -12,7 +13,6 @@ from threept_jax.pipeline.pan_and_scan import (
     plan_layout,
     projected_size_range,
     scales_for_sizes,
-    size_prior,
     tile_boxes_to_image,
     tile_layout,
 )

@@ -16,9 +16,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from threept_jax.geometry.camera import crop_intrinsics, look_at
+from threept_jax.geometry.framing import crop_boxes
 from threept_jax.pipeline.refinement import (
     RefineSettings,
-    crop_boxes,
     reciprocal_matches,
     refine_step,
     render_hypotheses,

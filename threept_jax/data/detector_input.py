@@ -63,8 +63,8 @@ import numpy as np
 from threept_jax.data import records
 from threept_jax.data.banks import BankFile, ObjectEntry, check_render_size, load_object_table
 from threept_jax.geometry.camera import object_centred_rotation
+from threept_jax.geometry.framing import SCALE_PRIOR, SCALE_REFERENCE_TILE
 from threept_jax.geometry.symmetry import nearest_templates
-from threept_jax.pipeline.pan_and_scan import SCALE_PRIOR, SCALE_REFERENCE_TILE
 
 __all__ = [
     "AttachRenders", "BankCache", "DecodeExample", "ExampleConfig", "PhotometricAugment",

@@ -30,7 +30,7 @@ move the object in the image: ``R = R_delta R_gt`` and the centre moves from
 
 Draws come from grain's per-element generator (seed, element index): deterministic.
 
-**Crop.** The square box :func:`~threept_jax.pipeline.refinement.crop_boxes` (margin
+**Crop.** The square box :func:`~threept_jax.geometry.framing.crop_boxes` (margin
 ``crop_margin``) of the first hypothesis, which all J share, as inference crops around its
 current best hypothesis. The image is resampled to ``crop_size`` by
 :func:`~threept_jax.data.detector_input.warp_crop` (bilinear, antialiased, zeros outside the
@@ -88,7 +88,7 @@ from threept_jax.data.detector_input import (
 )
 from threept_jax.data.ply import load_ply_vertices
 from threept_jax.geometry.camera import crop_intrinsics
-from threept_jax.pipeline.refinement import crop_boxes
+from threept_jax.geometry.framing import crop_boxes
 from threept_jax.render.mesh import RasterMesh, bucket_size, load_mesh, prepare_mesh, to_raster_mesh
 
 __all__ = [

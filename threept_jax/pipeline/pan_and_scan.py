@@ -1,10 +1,10 @@
 """Pan-and-scan: overlapping square tiles at several scales, box back-mapping and merging NMS.
 
 3PT-D sees fixed-size tiles (512 x 512 in the paper) in which training put objects at 128-350
-px (DESIGN.md section 1.1; ``SCALE_PRIOR``, scaled with the tile). A full image is resized by
-each scale s, cut into overlapping tiles, each tile is queried with each object, and the
-detections are mapped back to the full image and merged by NMS across tiles, scales and
-(optionally) objects.
+px (DESIGN.md section 1.1; the scale prior of ``threept_jax/geometry/framing.py``, scaled with
+the tile). A full image is resized by each scale s, cut into overlapping tiles, each tile is
+queried with each object, and the detections are mapped back to the full image and merged by
+NMS across tiles, scales and (optionally) objects.
 
 Scales come from what the user knows (:func:`plan_layout`): with a known depth range, the one
 scale (or the few) that puts the objects' projected diameters ``diameter * f / z`` into the
@@ -30,24 +30,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from threept_jax.geometry.boxes import cxcywh_to_xyxy
+from threept_jax.geometry.framing import size_prior
 
 Array = jax.Array
 
-#: The scale prior: object sizes (longer side of the amodal box, pixels) that detector training
-#: puts objects at on a ``SCALE_REFERENCE_TILE`` tile (DESIGN.md section 1.1); a tile of side t
-#: scales it by t / ``SCALE_REFERENCE_TILE`` (:func:`size_prior`). The one home of this
-#: convention: ``data/detector_input.py`` crops training tiles to it.
-SCALE_PRIOR = (128.0, 350.0)
-SCALE_REFERENCE_TILE = 512
-
 #: Smallest object (pixels of the full image) that the scales for an unknown depth range cover.
 MIN_OBJECT_SIZE = 64.0
-
-
-def size_prior(tile_size: int) -> tuple[float, float]:
-    """(lo, hi) object sizes in pixels of a ``tile_size`` tile that training puts objects at."""
-    f = tile_size / SCALE_REFERENCE_TILE
-    return SCALE_PRIOR[0] * f, SCALE_PRIOR[1] * f
 
 
 def axis_tile_starts(length: int, tile: int, min_overlap: int) -> np.ndarray:

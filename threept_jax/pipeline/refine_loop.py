@@ -52,10 +52,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from threept_jax.geometry.camera import crop_intrinsics
+from threept_jax.geometry.framing import crop_boxes
 from threept_jax.pipeline.refinement import (
     Network,
     RefineSettings,
-    crop_boxes,
     render_hypotheses,
     update_hypotheses,
 )

@@ -124,39 +124,6 @@ def map_intrinsics(crop_K: Array, crop_size: int, output_size: int) -> Array:
     return crop_intrinsics(jnp.asarray(crop_K, jnp.float32), box, (output_size, output_size))
 
 
-def crop_boxes(mesh, T_world_obj: Array, T_cam_world: Array, K: Array, *,
-               margin: float = 1.2) -> Array:
-    """Square crop boxes [..., V, 4] (pixel-edge xyxy) around an object's projected bounding sphere.
-
-    Args:
-      mesh: anything with the bounding sphere ``center`` [3] and ``radius`` (mm, object frame):
-        a :class:`~threept_jax.render.mesh.Mesh` or :class:`RasterMesh`.
-      T_world_obj: [..., 4, 4] the pose around which to crop (e.g. the best hypothesis).
-      T_cam_world: [V, 4, 4] extrinsics; K: [V, 3, 3] full-image intrinsics.
-      margin: half-side of the box over the sphere's projected radius.
-
-    The box is centred on the projection of the sphere's centre, with half-side
-    ``margin * max(fx, fy) * radius / z`` (z the centre's depth), so the crop's scale follows
-    the object's distance and not its rotation. At ``margin >= 1`` the whole object fits for
-    centres near the optical axis (the exact projection of a sphere is slightly larger off-axis
-    and closer than ~3 radii). Feed the boxes to ``crop_and_resize(image, box, (H, W), K)``,
-    which also returns ``crop_K``. The step's caller recomputes them at every iteration.
-    """
-    T_world_obj = jnp.asarray(T_world_obj, jnp.float32)
-    T_cam_world = jnp.asarray(T_cam_world, jnp.float32)
-    K = jnp.asarray(K, jnp.float32)
-    center = jnp.asarray(mesh.center, jnp.float32)
-    radius = jnp.asarray(mesh.radius, jnp.float32)
-    c_world = transform(T_world_obj, center[None])[..., 0, :]  # [..., 3]
-    c_cam = jnp.einsum("vij,...j->...vi", T_cam_world[:, :3, :3], c_world) + T_cam_world[:, :3, 3]
-    z = jnp.maximum(c_cam[..., 2], 1e-6)
-    u = (K[..., 0, 0] * c_cam[..., 0] + K[..., 0, 1] * c_cam[..., 1]) / z + K[..., 0, 2]
-    v = K[..., 1, 1] * c_cam[..., 1] / z + K[..., 1, 2]
-    half = margin * jnp.maximum(K[..., 0, 0], K[..., 1, 1]) * radius / z
-    # Pixel centre (u, v) is at pixel-edge coordinate (u + 0.5, v + 0.5).
-    return jnp.stack([u + 0.5 - half, v + 0.5 - half, u + 0.5 + half, v + 0.5 + half], -1)
-
-
 def render_hypotheses(mesh: RasterMesh, crop_K: Array, T_cam_world: Array, hypotheses: Array,
                       *, crop_size: int, output_size: int, ambient: float = 0.3) -> Renders:
     """Render K hypotheses [K, 4, 4] into V crops: colour at crop_size, geometry at output_size.
@@ -412,7 +379,7 @@ def refine_step(
       mesh: the prepared mesh (``to_raster_mesh(prepare_mesh(...))``).
       crops: [V, H, W, 3] real crops (H = W), uint8 or float in [0, 1].
       crop_K: [V, 3, 3] intrinsics of the crops (``crop_and_resize(..., K)`` with boxes from
-        :func:`crop_boxes`).
+        :func:`~threept_jax.geometry.framing.crop_boxes`).
       T_cam_world: [V, 4, 4] extrinsics (single view: the identity, V = 1).
       hypotheses: [K, 4, 4] T_world_obj (mm).
       output_size: h = w of the network's maps (``RefinerConfig.output_size``).
