@@ -15,6 +15,8 @@ Output (one BOP dataset per ``--out``; see ``datagen/scene.py`` for what a scene
                                                                  shard, counts, skipped meshes
     OUT/test_targets_multiview_bop25.json                        multi-view runs (--views V > 1):
                                                                  one group per capture
+    OUT/cell.json                                                --layout cell: the cell's camera,
+                                                                 working distance, depth range
 
 **Multi-view targets.** A run with ``--views V`` > 1 writes ``test_targets_multiview_bop25.json``
 at the dataset root: one group ``{"scene_id", "im_ids": [m*V, ..., m*V + V - 1]}`` per capture
@@ -74,9 +76,11 @@ from typing import Any
 
 import numpy as np
 
+from datagen import cell as C
 from datagen import meshes as M
 from datagen import procedural as P
 from datagen import scene as S
+from datagen.cell import Cell
 from threept_jax.data import bop
 from threept_jax.data.files import atomic_write_json
 from threept_jax.geometry.symmetry import Symmetries
@@ -86,6 +90,7 @@ GENERATOR_VERSION = "1.0"
 SPLITS = ("train", "val")
 # Stream tags of the seed sequences (arbitrary distinct constants).
 _PROCEDURAL_STREAM = 0x5052_4F43
+_CELL_STREAM = 0x4345_4C4C
 _SPLIT_STREAM = {"train": 0x5452_4149, "val": 0x5641_4C20}
 INFO_FILE = "datagen_info.json"
 LOCK_FILE = ".datagen.lock"
@@ -149,6 +154,16 @@ def mesh_split(name: str, val_fraction: float) -> str:
     """'val' or 'train' for a pool mesh name: a hash of the name against ``val_fraction``."""
     h = int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "big") / 2.0**64
     return "val" if h < val_fraction else "train"
+
+
+def design_cell(pool: M.MeshPool, seed: int, resolution: tuple[int, int]) -> Cell:
+    """The robot cell of a ``--layout cell`` dataset: drawn from the seed and the diameters of
+    every usable mesh of the pool, so every split and shard of the dataset shares it."""
+    diameters = [m.diameter for m in map(pool.load, range(len(pool))) if m is not None]
+    if not diameters:
+        raise ValueError("no usable mesh in --meshes: a cell needs its parts' diameters")
+    rng = np.random.default_rng(np.random.SeedSequence([seed, _CELL_STREAM]))
+    return C.design_cell(rng, diameters, resolution)
 
 
 def split_candidates(pool: M.MeshPool, split: str, val_fraction: float) -> list[int]:
@@ -380,6 +395,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     """
     check_args(args)
     try:  # configuration errors: one clear line, no traceback
+        pool = build_pool(args.meshes, args.seed, args.mesh_units, args.procedural_max_faces)
+        cell = design_cell(pool, args.seed, tuple(args.resolution)) if args.layout == "cell" \
+            else None
         cfg = S.SceneConfig(
             resolution=(args.resolution[0], args.resolution[1]),
             spp=args.spp,
@@ -391,9 +409,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             distractors=tuple(args.distractors),
             image_format=args.image_format,
             max_depth=args.max_depth,
+            denoise=args.denoise,
             closeup_probability=args.closeup_probability,
+            cell=cell,
         )
-        pool = build_pool(args.meshes, args.seed, args.mesh_units, args.procedural_max_faces)
     except ValueError as e:
         raise GenerateError(str(e)) from e
     out = pathlib.Path(args.out)
@@ -454,6 +473,8 @@ def _write_shard(
     atomic_write_json(split_dir / "manifest.json", manifest, indent=1, sort_keys=True)
     models_dir.mkdir(parents=True, exist_ok=True)
     update_models_info(models_dir, pool)
+    if cfg.cell is not None:
+        bop.write_cell(split_dir.parent, cfg.cell.to_json())
 
     assets = S.AssetCache(pool, models_dir)
     done = [s for s in scene_ids if (split_dir / f"{s:06d}" / INFO_FILE).is_file()]
@@ -558,11 +579,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--images-per-scene", type=int, default=1, help="captures M per scene")
     p.add_argument("--views", type=int, default=1, help="cameras V per capture (ring rig if > 1)")
     p.add_argument("--resolution", type=int, nargs=2, default=(640, 480), metavar=("W", "H"))
-    p.add_argument("--spp", type=int, default=64, help="path-tracing samples per pixel")
+    p.add_argument("--spp", type=int, default=4,
+                   help="path-tracing samples per pixel (denoised unless --no-denoise)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--shard", type=int, default=0)
     p.add_argument("--num-shards", type=int, default=1)
-    p.add_argument("--layout", choices=S.LAYOUTS, default="mixed")
+    p.add_argument("--layout", choices=S.LAYOUTS, default="mixed",
+                   help="cell: one fixed camera above a tray at a working distance, written to "
+                        "OUT/cell.json (datagen/cell.py); the others: random views")
     p.add_argument("--split", choices=SPLITS, default="train")
     p.add_argument("--val-fraction", type=float, default=0.0,
                    help="share of meshes held out for --split val (0: no split)")
@@ -575,6 +599,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="share of single views aimed at part of the scene (truncated objects)")
     p.add_argument("--image-format", choices=("jpg", "png"), default="jpg")
     p.add_argument("--max-depth", type=int, default=6, help="path length of the path tracer")
+    p.add_argument("--denoise", action=argparse.BooleanOptionalAction, default=True,
+                   help="clean the path-traced images with Open Image Denoise fed the albedo and "
+                        "normal of the same samples (bench/datagen_quality.py measures the gain "
+                        "per second); recorded in the manifest's config")
     p.add_argument("--mesh-units", choices=sorted(M.UNITS_TO_MM), default="mm",
                    help="units of the mesh folders (BOP models are in mm)")
     p.add_argument("--procedural-max-faces", type=int, default=P.DEFAULT_MAX_FACES)

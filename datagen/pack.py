@@ -309,6 +309,21 @@ def _tasks(sources: Sequence[Source], maps, fmt: str, per_task: int = 16):
                        src.label, fmt)
 
 
+def _carry_cell(sources, out: pathlib.Path) -> None:
+    """Copy the robot cell of cell datasets (``cell.json``, with the depth range detection
+    assumes) into the records folder, where training's evaluation reads it; records of two
+    different cells are refused."""
+    cells = [c for c in (bop.load_cell(s.split_dir.parent) for s in sources) if c is not None]
+    old = bop.load_cell(out)
+    distinct = {json.dumps(c, sort_keys=True) for c in cells + ([old] if old and cells else [])}
+    if len(distinct) > 1:
+        raise PackError(f"the scenes (and {out / bop.CELL_FILE}, if any) come from different "
+                        "robot cells (datagen --layout cell with other --seed or --meshes): pack "
+                        "each cell into its own --out")
+    if cells and old is None:
+        bop.write_cell(out, cells[0])
+
+
 def pack(
     scenes: Sequence[str],
     out: pathlib.Path,
@@ -361,6 +376,7 @@ def pack(
     total = sum(counts)
     if total == 0:
         raise PackError(f"no images in {list(scenes)}")
+    _carry_cell(sources, out)
     table, maps = assign_objects(sources, used, out, split_label)
     _write_table(out, table)
 

@@ -55,15 +55,17 @@ import numpy as np
 import trimesh
 
 from datagen import cameras as cams
+from datagen import cell as C
 from datagen import layouts as L
 from datagen import materials as Mt
+from datagen.cell import Cell
 from datagen.meshes import LoadedMesh, MeshPool, MeshSkippedWarning
 from threept_jax.data.bop import BopSceneWriter, Camera, GtInstance
 from threept_jax.data.files import atomic_write_bytes
 from threept_jax.render.mesh import Mesh, load_mesh
 from threept_jax.render.mitsuba_backend import Material, MitsubaRenderer, MitsubaScene
 
-LAYOUTS = ("drop", "float", "pack", "mixed")
+LAYOUTS = ("drop", "float", "pack", "mixed", "cell")
 # Mixed layouts: (kind, weight).
 _MIXED = (("drop-plane", 0.3), ("drop-bin", 0.3), ("float", 0.15), ("pack-grid", 0.1),
           ("pack-pile", 0.15))
@@ -85,7 +87,8 @@ class SceneConfig:
       spp: path-tracing samples per pixel.
       views: V cameras per capture (1: independent single views; > 1: a ring rig).
       images_per_scene: M captures per scene (M * V images).
-      layout: "drop", "float", "pack" or "mixed" (a random one per scene).
+      layout: "drop", "float", "pack", "mixed" (a random one per scene) or "cell" (parts
+        dropped into the tray of ``cell`` under its fixed camera, ``datagen/cell.py``).
       instances: mean number of annotated instances per scene.
       instance_spread: the count is uniform in [1 - spread, 1 + spread] x ``instances``.
       distinct: (min, max) number of distinct meshes among them.
@@ -95,12 +98,15 @@ class SceneConfig:
       image_format: "jpg" (BOP PBR) or "png" for ``rgb/``.
       depth_scale: mm per unit of the 16-bit depth PNGs (0.1 -> up to 6.5 m, like BOP PBR).
       max_depth: path length of the path tracer: -1 (unbounded) or >= ``MIN_MAX_DEPTH``.
+      denoise: clean the path-traced colour with Open Image Denoise fed its albedo and normal
+        (``threept_jax/render/denoise.py``); ``bench/datagen_quality.py`` measures the gain.
       texture_size: side of procedural textures, pixels.
       lights: (min, max) number of point / area lights besides the environment.
+      cell: the robot cell of the "cell" layout (:func:`datagen.cell.design_cell`), else None.
     """
 
     resolution: tuple[int, int] = (640, 480)
-    spp: int = 64
+    spp: int = 4
     views: int = 1
     images_per_scene: int = 1
     layout: str = "mixed"
@@ -113,8 +119,10 @@ class SceneConfig:
     image_format: str = "jpg"
     depth_scale: float = 0.1
     max_depth: int = 6
+    denoise: bool = True
     texture_size: int = 256
     lights: tuple[int, int] = (1, 3)
+    cell: Cell | None = None
 
     def __post_init__(self):
         W, H = self.resolution
@@ -145,6 +153,14 @@ class SceneConfig:
             )
         if not self.depth_scale > 0:
             raise ValueError(f"depth_scale must be > 0 mm per unit, got {self.depth_scale}")
+        if (self.layout == "cell") != (self.cell is not None):
+            raise ValueError("the cell layout needs its cell (datagen.cell.design_cell), and a "
+                             "cell needs layout='cell'")
+        if self.cell is not None and (self.views != 1
+                                      or tuple(self.cell.resolution) != tuple(self.resolution)):
+            raise ValueError(f"a cell has one camera of {self.cell.resolution[0]}x"
+                             f"{self.cell.resolution[1]}: use views=1 and that resolution, got "
+                             f"views={self.views}, resolution={self.resolution}")
 
     @property
     def images(self) -> int:
@@ -477,6 +493,8 @@ def _layout(
         kind = "drop-bin" if rng.random() < cfg.bin_probability else "drop-plane"
     elif kind == "pack":
         kind = "pack-grid" if rng.random() < 0.5 else "pack-pile"
+    elif kind == "cell":
+        return kind, L.drop_layout(rng, shapes, idx, bin=cfg.cell.tray)
     if kind == "drop-plane":
         side = math.sqrt(footprint * rng.uniform(1.0, 3.0))
         a = rng.uniform(1.0, 1.5)
@@ -673,7 +691,7 @@ def generate_scene(
         for w in walls:
             m = Mesh(w.vertices, w.faces, name="bin_wall")
             background.append((Mt.box_uv_mesh(m, bl.texture, bl.texture_mm, rng), bl.material))
-    if rng.random() < 0.4:
+    if cfg.cell is None and rng.random() < 0.4:  # a cell camera looks down: no backdrop
         _, tex = Mt.random_texture(rng, cfg.texture_size)
         z0 = ground_z if ground_z is not None else float(all_pts[:, 2].min() - 500.0)
         dist = float(min(radius * rng.uniform(3.0, 6.0), 3400.0))
@@ -706,11 +724,17 @@ def generate_scene(
         for mesh, mat in background:
             scene.add_object(mesh, np.eye(4), mat)
         sky, T_env = Mt.sky_environment(rng)
-        scene.set_environment(sky, float(rng.uniform(0.3, 1.5)), T_env)
+        # A cell is lit mostly by its own lamps above the tray; the room adds a little.
+        scene.set_environment(sky, float(rng.uniform(*((0.1, 0.5) if cfg.cell else (0.3, 1.5)))),
+                              T_env)
         for _ in range(int(rng.integers(cfg.lights[0], cfg.lights[1] + 1))):
-            el = math.radians(rng.uniform(20.0, 85.0))
+            if cfg.cell is None:
+                el = math.radians(rng.uniform(20.0, 85.0))
+                dist = max(300.0, radius * rng.uniform(2.0, 6.0))
+            else:  # lamps above the tray, around the camera
+                el = math.radians(rng.uniform(55.0, 90.0))
+                dist = cfg.cell.working_distance * rng.uniform(0.8, 2.0)
             az = rng.uniform(0, 2 * math.pi)
-            dist = max(300.0, radius * rng.uniform(2.0, 6.0))
             pos = centre + dist * np.array(
                 [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]
             )
@@ -724,7 +748,10 @@ def generate_scene(
                 T_light = np.linalg.inv(cams.look_at_camera(pos, centre))
                 scene.add_area_light(T_light, (float(size[0]), float(size[1])),
                                      irradiance * dist**2 / (size[0] * size[1]) * color)
-        if cfg.views == 1:
+        if cfg.cell is not None:
+            K, T_cw = C.capture(rng, cfg.cell)
+            Ks, Ts = K[None], T_cw[None]
+        elif cfg.views == 1:
             K = cams.sample_intrinsics(rng, W, H)
             aim, r = centre, radius
             closeup = bool(targets) and rng.random() < cfg.closeup_probability
@@ -749,7 +776,8 @@ def generate_scene(
             im_id = m * cfg.views + v
             t2 = time.perf_counter()
             out = scene.render(K, T_cw, (H, W), spp=cfg.spp, seed=int(seeds[v]),
-                               outputs=("rgb", "depth", "instance"), linear=True)
+                               outputs=("rgb", "depth", "instance"), linear=True,
+                               denoise=cfg.denoise)
             rgb = Mt.to_uint8_srgb(Mt.auto_exposure(out["rgb"], float(keys[v])))
             t3 = time.perf_counter()
             timings.render += t3 - t2

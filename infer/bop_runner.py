@@ -264,6 +264,11 @@ def run_bop(args) -> dict:
     if args.refine_only is not None:
         return run_refine_only(args)
     ds = bop.BopDataset(args.dataset_dir)
+    cell = bop.load_cell(args.dataset_dir)
+    if args.depth_range is None and cell is not None:
+        args.depth_range = tuple(cell["depth_range_mm"])
+        print(f"depth range {args.depth_range[0]:.0f}-{args.depth_range[1]:.0f} mm from "
+              f"{args.dataset_dir / bop.CELL_FILE} (--depth-range overrides it)", flush=True)
     groups, models = select_groups_and_objects(args, ds)
     multiview = args.targets == "multiview"
     splits = functools.cache(lambda sensor: ds.split(args.split, sensor))  # scenes read once

@@ -87,7 +87,9 @@ def _common(p: argparse.ArgumentParser, workdir_when: str | None = None) -> None
                    help="distance range of the objects from the camera (mm): pan-and-scan "
                         "uses the one scale (or the few) that puts their projected diameters "
                         "(diameter * f / z) at the sizes the detector was trained on; without "
-                        "it, the scales cover objects from 64 px to the whole image")
+                        "it, the scales cover objects from 64 px to the whole image. bop: "
+                        "default from the dataset's cell.json when it has one (datagen "
+                        "--layout cell)")
     p.add_argument("--num-scales", type=_int_at_least(1), default=None,
                    help="pan-and-scan scales (default: the fewest that cover the object sizes: "
                         "3 for a 640x480 image without --depth-range)")

@@ -3,7 +3,8 @@
 **Full images (the headline and the best-checkpoint metric).** The first ``eval.num_images``
 val records are detected the way inference detects them
 (:class:`threept_jax.pipeline.detection.FullImageDetector`: pan-and-scan at
-``eval.num_scales`` scales (``pan_and_scan.plan_layout``), every val object queried in every
+``eval.num_scales`` scales (``pan_and_scan.plan_layout``), or, for records of a robot cell
+(``cell.json``, ``datagen --layout cell``), the scales of its depth range, every val object queried in every
 tile, one NMS across tiles, scales and objects, ``eval.max_detections`` per image, no score threshold), with each
 val object's prior tokens and template bank (``eval.num_templates`` templates of its render
 bank, all by default) embedded once per evaluation. Metrics:
@@ -56,7 +57,7 @@ from flax import nnx
 
 from threept_jax.data import records
 from threept_jax.data.banks import BankFile, ObjectEntry, check_render_size
-from threept_jax.data.bop import Detection2D, GtInfo, GtInstance, PoseEstimate, Target
+from threept_jax.data.bop import Detection2D, GtInfo, GtInstance, PoseEstimate, Target, load_cell
 from threept_jax.data.detector_input import BankCache, detection_dataset, find_shards
 from threept_jax.eval.bop6d import ImageGt, evaluate_poses
 from threept_jax.eval.coco import evaluate_coco
@@ -72,6 +73,7 @@ from threept_jax.pipeline.detection import (
     ObjectQueries,
     model_points,
 )
+from threept_jax.pipeline.pan_and_scan import projected_size_range
 from threept_jax.render.mesh import read_trimesh
 from train import sharding
 from train.run_config import example_config, model_config
@@ -251,6 +253,8 @@ class DetectorEvaluator:
         self.template_ids = self._template_subset()
         self._build_functions()
         self.images = read_held_out_images(config.data_dir, int(e.num_images))
+        cell = load_cell(config.data_dir)
+        self.depth_range = None if cell is None else tuple(cell["depth_range_mm"])
         meshes = object_meshes(config.data_dir, self.obj_ids)
         if meshes is None:
             warnings.warn(
@@ -269,7 +273,8 @@ class DetectorEvaluator:
                 max_detections=int(e.max_detections),
                 candidates_per_object=int(e.candidates_per_object), num_hypotheses=1,
                 score_modes=SCORE_MODES, generate_objects=meshes is not None),
-            num_scales=int(e.num_scales),
+            # A cell's records know the depth range: the scales it implies, as inference uses.
+            num_scales=None if self.depth_range else int(e.num_scales),
             jit_kwargs={"out_shardings": sharding.replicated(mesh)})
 
     def _template_subset(self) -> dict[int, np.ndarray]:
@@ -382,10 +387,13 @@ class DetectorEvaluator:
                               for o in self.obj_ids])
         queries = ObjectQueries(prior_all, bank_all, _replicate(rotations, rep),
                                 None if self._points is None else _replicate(self._points, rep))
+        diameters = [self.banks.entry(int(o)).diameter for o in self.obj_ids]
         out = []
         for im in self.images:
+            sizes = None if self.depth_range is None else projected_size_range(
+                diameters, self.depth_range, im.K)
             res = self.image_detector(params, _replicate(im.rgb, rep),
-                                      _replicate(im.K.astype(np.float32), rep), queries)
+                                      _replicate(im.K.astype(np.float32), rep), queries, sizes)
             out.append(jax.tree.map(lambda x: np.asarray(x.addressable_data(0)), res))
         return out
 

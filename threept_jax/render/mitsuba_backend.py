@@ -504,14 +504,18 @@ class MitsubaScene:
             }
             self._scene = None
 
+    def set_max_depth(self, max_depth: int) -> None:
+        """Path length of the path tracer (-1: unbounded); the scene is rebuilt on next render."""
+        with self._lock:
+            self.max_depth = int(max_depth)
+            self._scene = None
+
     def _build(self):
         import drjit as dr
 
         mi = self.mi
-        d: dict[str, Any] = {
-            "type": "scene",
-            "integrator": {"type": "path", "max_depth": self.max_depth},
-        }
+        path = {"type": "path", "max_depth": self.max_depth}
+        d: dict[str, Any] = {"type": "scene", "integrator": path}
         shapes = []
         for i, (mesh, T, mat) in enumerate(self._objects):
             bsdf = mi.load_dict(mat.to_dict(mi, mesh))
@@ -537,6 +541,10 @@ class MitsubaScene:
         for i, shape in enumerate(shapes):
             table[sid(shape)] = i + 1
         self._scene, self._table = scene, mi.UInt32(table)
+        # The same path tracer writing the first-hit albedo and shading normal beside the
+        # colour: the auxiliary images of the denoiser.
+        self._aov_integrator = mi.load_dict(
+            {"type": "aov", "aovs": "albedo:albedo,normal:sh_normal", "integrator": path})
 
     # -- rendering -------------------------------------------------------------------------
     def render(
@@ -549,11 +557,14 @@ class MitsubaScene:
         outputs: Sequence[str] = ("rgb", "depth", "mask", "instance", "xyz", "normal"),
         near: float = 1.0,
         linear: bool = False,
+        denoise: bool = False,
     ) -> dict[str, np.ndarray]:
         """Render one view K [3, 3], T_cam_world [4, 4] at hw = (H, W).
 
         Returns NumPy arrays: ``rgb`` [H, W, 3] path traced with ``spp`` samples (sRGB-encoded
-        in [0, 1], or linear radiance with ``linear``), and, ray cast at exact pixel centres:
+        in [0, 1], or linear radiance with ``linear``; with ``denoise``, cleaned by Open Image
+        Denoise from the same samples' albedo and normal, :mod:`threept_jax.render.denoise`),
+        and, ray cast at exact pixel centres:
         ``depth`` [H, W] (z in mm of whatever is hit, ground included; 0 where rays escape),
         ``mask`` (an object is hit), ``instance`` [H, W] int32 (object id, 0 = not an object),
         ``xyz`` [H, W, 3] (coordinates in the hit object's own frame, mm; 0 off objects),
@@ -574,13 +585,13 @@ class MitsubaScene:
                 self._build()
             out = {}
             if "rgb" in outputs:
-                out["rgb"] = self._path_trace(K, T, (H, W), spp, seed, linear)
+                out["rgb"] = self._path_trace(K, T, (H, W), spp, seed, linear, denoise)
             geo = [o for o in outputs if o != "rgb"]
             if geo:
                 out.update(self._geometry(K, T, (H, W), near, geo))
         return out
 
-    def _path_trace(self, K, T, hw, spp, seed, linear):
+    def _path_trace(self, K, T, hw, spp, seed, linear, denoise):
         mi = self.mi
         H, W = hw
         exact = abs(K[0, 0] - K[1, 1]) < 1e-9 * K[0, 0]
@@ -589,8 +600,14 @@ class MitsubaScene:
         else:
             K_sq, hw_sq, box = square_pixel_camera(K, hw)
         sensor = mi.load_dict(_sensor_dict(mi, K_sq, T, hw_sq))
-        img = np.array(mi.render(self._scene, sensor=sensor, spp=int(spp), seed=int(seed)))
-        img = img[..., :3].astype(np.float32)
+        integrator = self._aov_integrator if denoise else None  # None: the scene's path tracer
+        img = np.array(mi.render(self._scene, sensor=sensor, integrator=integrator,
+                                 spp=int(spp), seed=int(seed)), np.float32)
+        if denoise:  # channels: colour, then the AOVs in the order named in _build
+            from threept_jax.render.denoise import denoise as oidn
+
+            img = oidn(img[..., 0:3], img[..., 3:6], img[..., 6:9])
+        img = img[..., :3]
         if box is not None:
             from threept_jax.render.crop import crop_and_resize
 

@@ -40,12 +40,15 @@ from threept_jax.data.bop.json_format import (
     write_json_atomic,
 )
 from threept_jax.data.bop.models import (
+    CELL_FILE,
     MULTIVIEW_TARGETS_FILE,
     compute_model_info,
+    load_cell,
     load_models,
     load_models_info,
     load_multiview_targets,
     load_targets,
+    write_cell,
     write_models_info,
     write_multiview_targets,
     write_targets,
@@ -83,6 +86,7 @@ from threept_jax.data.bop.writer import (
 )
 
 __all__ = [
+    "CELL_FILE",
     "MULTIVIEW_TARGETS_FILE",
     "POSE_CSV_HEADER",
     "BopDataset",
@@ -99,6 +103,7 @@ __all__ = [
     "Target",
     "check_consistent_times",
     "compute_model_info",
+    "load_cell",
     "load_models",
     "load_models_info",
     "load_multiview_targets",
@@ -111,6 +116,7 @@ __all__ = [
     "top_estimates_per_image",
     "write_camera_info",
     "write_detection_results",
+    "write_cell",
     "write_json_atomic",
     "write_models_info",
     "write_multiview_targets",

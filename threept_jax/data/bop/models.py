@@ -190,3 +190,32 @@ def _parse_multiview_group(g, where: str) -> MultiviewTarget:
         else:
             parsed.append((None, _json_int(v)))
     return MultiviewTarget(_json_int(g["scene_id"]), tuple(parsed))
+
+
+#: The robot cell of a synthetic cell dataset (``datagen --layout cell``), at the dataset root:
+#: its camera, working distance and ``depth_range_mm`` (zmin, zmax), the depth range detection
+#: assumes by default (``python -m infer bop``, ``train.adapt``). Not part of BOP.
+CELL_FILE = "cell.json"
+
+
+def write_cell(root, cell: Mapping) -> None:
+    """Write ``cell.json`` into the dataset folder ``root`` (atomic)."""
+    write_json_atomic(pathlib.Path(root) / CELL_FILE, dict(cell))
+
+
+def load_cell(root) -> dict | None:
+    """The ``cell.json`` of the dataset folder ``root``, or None when it has none; raises
+    ValueError naming the file when its ``depth_range_mm`` is not (zmin, zmax) with
+    0 < zmin <= zmax."""
+    path = pathlib.Path(root) / CELL_FILE
+    if not path.is_file():
+        return None
+    raw = _load_json(path, "cell file")
+    z = raw.get("depth_range_mm") if isinstance(raw, Mapping) else None
+    ok = (isinstance(z, list) and len(z) == 2 and all(isinstance(v, (int, float)) for v in z)
+          and 0 < z[0] <= z[1])
+    if not ok:
+        raise ValueError(f"{path}: depth_range_mm must be [zmin, zmax] in mm with 0 < zmin <= "
+                         f"zmax, got {z!r}; regenerate the dataset (python -m datagen.generate "
+                         "--layout cell) or delete the file to run without a depth range")
+    return dict(raw)

@@ -1,0 +1,125 @@
+"""Robot-cell scenes (``datagen --layout cell``): the cell's camera and tray from its hand-derived
+definition, every part of generated scenes inside the recorded depth range, one cell per dataset
+(both splits), carried into the records, and the errors.
+
+References: the pinhole relation size = f d / z derived by hand; ground-truth poses read back
+from the written BOP files with ``threept_jax.data.bop``; ``cv2.projectPoints`` for where the
+tray centre lands.
+"""
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from datagen import cell as C
+from datagen import generate, pack
+from datagen import scene as S
+from threept_jax.data import bop
+
+ARGS = ["--meshes", "procedural:5", "--procedural-max-faces", "1000", "--resolution", "160",
+        "120", "--spp", "1", "--max-depth", "2", "--instances", "6", "--image-format", "png",
+        "--quiet", "--seed", "5", "--layout", "cell"]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cell")
+    generate.main(ARGS + ["--out", str(out), "--num-scenes", "3", "--images-per-scene", "2"])
+    generate.main(ARGS + ["--out", str(out), "--num-scenes", "1", "--split", "val"])
+    return out
+
+
+def test_design_matches_its_definition():
+    rng = np.random.default_rng(0)
+    diameters = [60.0, 80.0, 100.0, 150.0]
+    cell = C.design_cell(rng, diameters, (640, 480))
+    K = np.asarray(cell.K)
+    # The median part (90 mm) projects to MEDIAN_PART_SHARE of 640 px at the working distance.
+    px = K[0, 0] * 90.0 / cell.working_distance
+    assert C.MEDIAN_PART_SHARE[0] * 640 <= px <= C.MEDIAN_PART_SHARE[1] * 640
+    # The tray fills TRAY_FILL of the image width at the floor: x = f X / z.
+    assert K[0, 0] * cell.tray_inner[0] / cell.working_distance == pytest.approx(
+        C.TRAY_FILL * 640, rel=1e-9)
+    assert cell.max_height == pytest.approx(cell.tray_height + 75.0)
+    zmin, zmax = cell.depth_range()
+    lo, hi = cell.distance_range
+    assert zmin < lo - cell.max_height and zmax > hi
+    # Very mixed sizes: the camera backs off so the largest part stays in front of it.
+    mixed = C.design_cell(rng, [10.0, 12.0, 400.0], (640, 480))
+    assert mixed.depth_range()[0] >= 0.4 * mixed.working_distance
+    with pytest.raises(ValueError, match="positive diameters"):
+        C.design_cell(rng, [], (640, 480))
+
+
+def test_captures_look_down_at_the_tray():
+    rng = np.random.default_rng(1)
+    cell = C.design_cell(rng, [50.0, 70.0], (320, 240))
+    for _ in range(20):
+        K, T = C.capture(rng, cell)
+        R, t = T[:3, :3], T[:3, 3]
+        # The optical axis (camera +z in the world) points down, within the tilt bound.
+        down = -R[2, 2]
+        assert down >= math.cos(math.radians(C.TILT_DEG)) - 1e-9
+        depth = (R @ np.zeros(3) + t)[2]  # the tray centre's depth
+        lo, hi = cell.distance_range
+        s = 0.5 * math.hypot(*cell.tray_inner) * 2 * C.AIM_JITTER
+        assert lo - s <= depth <= hi + s
+        uv, _ = cv2.projectPoints(np.zeros((1, 3)), cv2.Rodrigues(R)[0], t, K, None)
+        u, v = uv[0, 0]
+        assert abs(u - 160) < 0.15 * 320 and abs(v - 120) < 0.15 * 240
+
+
+def test_scenes_stay_in_the_recorded_depth_range(dataset):
+    cell = bop.load_cell(dataset)
+    zmin, zmax = cell["depth_range_mm"]
+    assert cell["resolution"] == [160, 120]
+    ds = bop.BopDataset(dataset)
+    depths, n = [], 0
+    for split in ("train_pbr", "val_pbr"):
+        sp = ds.split(split)
+        for sid in sp.scene_ids:
+            sc = sp.scene(sid)
+            for im in sc.image_ids:
+                np.testing.assert_allclose(sc.cameras[im].K.ravel(), cell["cam_K"], rtol=0,
+                                           atol=1e-6)  # one camera for the whole dataset
+                for g in sc.gt[im]:
+                    depths.append(g.T_cam_obj[2, 3])
+                n += 1
+    assert n == 7 and len(depths) >= 7
+    assert zmin <= min(depths) and max(depths) <= zmax, (min(depths), max(depths), zmin, zmax)
+    manifest = json.loads((dataset / "train_pbr" / "manifest.json").read_text())
+    assert manifest["layouts"] == {"cell": 3}
+    assert manifest["config"]["cell"]["working_distance"] == pytest.approx(
+        cell["working_distance_mm"])
+
+
+def test_pack_carries_the_cell_and_refuses_another(dataset, tmp_path):
+    records = tmp_path / "records"
+    pack.main(["--scenes", str(dataset / "train_pbr"), "--out", str(records), "--no-banks",
+               "--quiet"])
+    assert bop.load_cell(records) == bop.load_cell(dataset)
+    other = tmp_path / "other"
+    generate.main([a if a != "5" else "6" for a in ARGS] + ["--out", str(other),
+                                                            "--num-scenes", "1"])
+    assert bop.load_cell(other) != bop.load_cell(dataset)
+    with pytest.raises(SystemExit):
+        pack.main(["--scenes", str(other / "train_pbr"), "--out", str(records), "--name", "b",
+                   "--no-banks", "--quiet"])
+
+
+def test_bad_cell_options_and_files(tmp_path, capsys):
+    cell = C.design_cell(np.random.default_rng(0), [50.0], (64, 48))
+    with pytest.raises(ValueError, match="views=1"):
+        S.SceneConfig(resolution=(64, 48), layout="cell", cell=cell, views=3)
+    with pytest.raises(ValueError, match="needs its cell"):
+        S.SceneConfig(resolution=(64, 48), layout="cell")
+    with pytest.raises(SystemExit):
+        generate.main(ARGS + ["--out", str(tmp_path / "mv"), "--num-scenes", "1", "--views", "2"])
+    assert "views=1" in capsys.readouterr().err
+    (tmp_path / bop.CELL_FILE).write_text(json.dumps({"depth_range_mm": [500, 100]}))
+    with pytest.raises(ValueError, match="cell.json.*zmin <= zmax"):
+        bop.load_cell(tmp_path)
+    assert bop.load_cell(tmp_path / "missing") is None
