@@ -62,7 +62,9 @@ def summary(name: str, figs: dict) -> list[str]:
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    from train.adapt import CONFIGS
+    from train.adapt import CONFIGS, log_friendly_progress
+
+    log_friendly_progress()
 
     p = argparse.ArgumentParser(prog="python -m demo", description=__doc__.split("\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)

@@ -4,11 +4,13 @@
 of parts, and the best BOP-Industrial entries train a few minutes per part. This command does
 that with our own data engine, in stages that each resume when the command is run again:
 
-1. **Scenes** (``datagen.generate``): path-traced scenes of exactly the given meshes (drop,
-   float and pack layouts, distractors, random materials), in three disjoint sets of one mesh
-   pool: ``W/data/train`` (training), ``W/data/val`` (checkpoint selection and the score
-   threshold of the overlays) and ``W/data/test`` (the report; neither training nor selection
-   sees it).
+1. **Scenes** (``datagen.generate``): path-traced scenes of exactly the given meshes, by
+   default in a robot cell (``--layout cell``: one camera above a tray at a working distance
+   drawn once from the seed and the parts' sizes, distractors, random materials; the cell and
+   its depth range go to ``W/data/*/cell.json``, and detection uses that depth range), in three
+   disjoint sets of one mesh pool: ``W/data/train`` (training), ``W/data/val`` (checkpoint
+   selection and the score threshold of the overlays) and ``W/data/test`` (the report;
+   neither training nor selection sees it).
 2. **Records** (``datagen.pack``): ArrayRecord shards and render banks at the model's render
    size -> ``W/records``.
 3. **Budget**: the warm step time of each model trained here is measured once (a few compiled
@@ -42,7 +44,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import pathlib
+import sys
 import tempfile
 import time
 from collections.abc import Sequence
@@ -54,6 +58,14 @@ NUM_EVALS = 4
 #: Steps timed for the budget (after one compiling step and two warm-up steps).
 TIMED_STEPS = 8
 CONFIGS = ("tiny", "cpu", "small", "paper")
+
+
+def log_friendly_progress() -> None:
+    """Progress bars written to a file rather than a terminal (a CI or ``make demo > log``)
+    redraw every 30 s instead of 10 times a second: a readable log, not megabytes of
+    carriage returns. tqdm reads ``TQDM_MININTERVAL`` when it is imported, so call this first."""
+    if not sys.stderr.isatty():
+        os.environ.setdefault("TQDM_MININTERVAL", "30")
 
 
 def _stage(text: str) -> float:
@@ -89,11 +101,18 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                         "0: no refiner, the test scores object generation alone")
     p.add_argument("--refiner-config", default="tiny", choices=CONFIGS,
                    help="train/configs/refiner.py config")
-    p.add_argument("--train-scenes", type=int, default=40, help="4 images each")
+    p.add_argument("--train-scenes", type=int, default=40,
+                   help="training scenes, 4 images each (in a cell: the same pile under other "
+                        "lamps and rig jitter; a new scene costs a Mitsuba scene build)")
     p.add_argument("--test-scenes", type=int, default=6,
                    help="2 images each, and as many val scenes")
-    p.add_argument("--resolution", type=int, nargs=2, default=(320, 240), metavar=("W", "H"))
-    p.add_argument("--spp", type=int, default=4, help="path-tracing samples per pixel")
+    p.add_argument("--layout", default="cell", choices=("cell", "mixed"),
+                   help="cell: one camera above a tray at a known working distance (detection "
+                        "uses its depth range); mixed: random views of drops, floats and packs")
+    p.add_argument("--resolution", type=int, nargs=2, default=(640, 480), metavar=("W", "H"))
+    p.add_argument("--spp", type=int, default=2,
+                   help="path-tracing samples per pixel, denoised (bench/datagen_quality.py: 2 "
+                        "denoised samples are closer to the converged image than 32 raw ones)")
     p.add_argument("--instances", type=int, default=8, help="mean part instances per scene")
     p.add_argument("--seed", type=int, default=0, help="scenes (and procedural parts)")
     p.add_argument("--overlays", type=int, default=6, help="test overlays written")
@@ -117,6 +136,33 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 # --------------------------------------------------------------------------- stages 1-2
 
 
+def check_meshes(args) -> None:
+    """Read every mesh of ``--meshes`` before any work (no workdir is made before this passes).
+    No usable mesh: SystemExit naming each file and what is wrong with it. Some unusable: one
+    line per skipped file, the run goes on with the others (datagen's own repeats of those
+    warnings are silenced)."""
+    import warnings
+
+    from datagen import generate as G
+    from datagen.meshes import MeshSkippedWarning
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", MeshSkippedWarning)
+            pool = G.build_pool(args.meshes, args.seed, args.mesh_units)
+            usable = [i for i in range(len(pool)) if pool.load(i) is not None]
+    except ValueError as e:  # a missing folder, no mesh file at all
+        raise SystemExit(f"error: --meshes: {e}") from None
+    reasons = list(pool.skipped_reasons.values())  # each names its file
+    if not usable:
+        raise SystemExit("error: no usable mesh in --meshes; fix or remove these files:\n  "
+                         + "\n  ".join(reasons))
+    if reasons:
+        print(f"warning: skipping {len(reasons)} of {len(pool)} meshes, adapting to the "
+              f"{len(usable)} others:\n  " + "\n  ".join(reasons), flush=True)
+        warnings.filterwarnings("ignore", category=MeshSkippedWarning)
+
+
 def generate(args, data: pathlib.Path, sets: Sequence[str] = ("train", "val", "test")) -> None:
     """Scenes of ``args.meshes``: ``train``, and ``val`` and ``test`` as the two shards of one
     held-out set (disjoint scenes of the same mesh pool)."""
@@ -124,7 +170,7 @@ def generate(args, data: pathlib.Path, sets: Sequence[str] = ("train", "val", "t
 
     common = ["--meshes", *args.meshes, "--mesh-units", args.mesh_units,
               "--resolution", *map(str, args.resolution), "--spp", str(args.spp),
-              "--max-depth", "3", "--instances", str(args.instances),
+              "--max-depth", "3", "--instances", str(args.instances), "--layout", args.layout,
               "--distinct", "1", str(min(args.instances, 6)), "--val-fraction", "0",
               "--seed", str(args.seed), "--quiet"]
     runs = {"train": ["--split", "train", "--num-scenes", str(args.train_scenes),
@@ -349,7 +395,9 @@ def test(workdir: pathlib.Path, data: pathlib.Path, out: pathlib.Path, cache: pa
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
+    log_friendly_progress()
     args = parse_args(argv)
+    check_meshes(args)
     w = args.workdir
     data, records, cache = w / "data", w / "records", w / "cache"
     refiner = w / "refiner" if args.refiner_minutes > 0 else None

@@ -1,7 +1,9 @@
 """Training logs: TensorBoard event files, console lines and a progress bar.
 
 Only process 0 writes (event files in ``<workdir>/tb``); every process keeps its bar off but
-still averages metrics, so multi-host runs print once. Scalars are averaged over the steps
+still averages metrics, so multi-host runs print once. When the output is not a terminal (a
+log file, CI) there is no bar, whose redraws would fill the file: the step lines, which name
+the step of the total, are the progress. Scalars are averaged over the steps
 since the last write.
 
 A run resumed from step S may find events of steps after S in ``tb/``: its previous process
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import math
 import pathlib
+import sys
 import time
 from collections.abc import Mapping
 
@@ -31,6 +34,7 @@ class MetricLogger:
                  enabled: bool = True, progress_bar: bool = True):
         self.enabled = enabled
         self.examples_per_step = examples_per_step
+        self.total_steps = total_steps
         self._sums: dict[str, float] = {}
         self._count = 0
         self._t0 = time.perf_counter()
@@ -43,7 +47,7 @@ class MetricLogger:
             resume = {"purge_step": start_step + 1,
                       "filename_suffix": f".resumed{start_step}"} if start_step else {}
             self.writer = SummaryWriter(str(pathlib.Path(workdir) / TB_DIR), **resume)
-            if progress_bar:
+            if progress_bar and sys.stderr.isatty():
                 self.bar = tqdm.tqdm(total=total_steps, initial=start_step, unit="step",
                                      dynamic_ncols=True, desc="train")
 
@@ -82,7 +86,7 @@ class MetricLogger:
         for k, v in scalars.items():
             self.writer.add_scalar(k, float(v), step)
         self.writer.flush()
-        self.print(f"step {step}: " + ", ".join(
+        self.print(f"step {step}/{self.total_steps}: " + ", ".join(
             f"{k.split('/', 1)[-1]}={_fmt(v)}" for k, v in sorted(scalars.items())))
         if self.bar is not None and "train/examples_per_s" in scalars:
             self.bar.set_postfix(ex_per_s=f"{scalars['train/examples_per_s']:.1f}",

@@ -31,6 +31,27 @@ def test_bad_arguments_exit_2_naming_the_flag(tmp_path, capsys):
     assert args.refiner_minutes == 0 and args.refiner_config == "tiny"  # no refiner by default
 
 
+def test_corrupt_meshes_are_checked_before_any_work(tmp_path, capsys):
+    """A truncated PLY: alone, the command refuses in one message naming the file and makes no
+    workdir; beside a good mesh, it is skipped with one line that names it."""
+    good = "/work/shared/meshes/bop/tless/models/obj_000018.ply"
+    data = open(good, "rb").read()
+    bad_dir, mixed_dir = tmp_path / "bad", tmp_path / "mixed"
+    for d in (bad_dir, mixed_dir):
+        d.mkdir()
+        (d / "obj_000005.ply").write_bytes(data[:3000])  # header and part of the vertices
+    (mixed_dir / "obj_000018.ply").write_bytes(data)
+    work = tmp_path / "w"
+    with pytest.raises(SystemExit, match=r"(?s)no usable mesh in --meshes.*obj_000005.ply"):
+        adapt.main(["--meshes", str(bad_dir), "--workdir", str(work)])
+    assert not work.exists()
+    args = adapt.parse_args(["--meshes", str(mixed_dir), "--workdir", str(work)])
+    adapt.check_meshes(args)
+    out = capsys.readouterr().out
+    assert "skipping 1 of 2 meshes" in out and "obj_000005.ply" in out, out
+    assert not work.exists()
+
+
 def _summary(ap: float, initial: bool) -> dict:
     """An ``infer bop --evaluate`` summary (the interface of infer/bop_runner.py) whose every
     figure is ``ap`` plus a distinct offset, the initial files' ``ap + 0.5`` plus the same."""

@@ -132,12 +132,12 @@ def test_sigterm_saves_exits_zero_and_resumes_to_the_same_batch(toy, tmp_path):
     proc = subprocess.Popen(launch_args(cfg, workdir), env=SUBPROCESS_ENV, cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        # log_every=1: "step N:" lines on stdout; signal once two steps have been logged.
+        # log_every=1: "step N/total:" lines on stdout; signal once two steps have been logged.
         seen = []
         deadline = time.time() + 240
         for line in proc.stdout:
             seen.append(line)
-            if line.startswith("step 2:"):
+            if line.startswith("step 2/"):
                 break
             assert time.time() < deadline, "no step 2 within 4 minutes"
         else:
