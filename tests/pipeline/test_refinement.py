@@ -112,15 +112,18 @@ def test_oracle_converges_to_ground_truth(scene, views):
 
 
 def test_noisy_oracle_three_views_beat_one_on_depth(scene):
-    """Descriptor noise (0.1 of the norm): 3 views cut the depth error at least 5-fold."""
+    """Descriptor noise (0.1 of the norm), six starts: 3 views cut the median depth error at
+    least 3-fold and keep every start under 0.2 mm. Measured on 2 cores (errors after 3
+    iterations, mm): 1 view 0.05-3.0, median 0.61; 3 views 0.04-0.094, median 0.069 (8.8x).
+    One start alone is no test: there 1 view can beat 3 (0.054 vs 0.09 mm), and the 5-fold
+    margin on three starts this test used to require failed at 4.0x on some machines."""
     _, _, T_cw, T_gt = scene
-    depth = {}
-    for views in (1, 3):
-        depth[views] = np.mean([
-            _refine(scene, NOISY_ORACLE, _perturbed(T_gt, T_cw[0], seed, sign), views)[-1, 2]
-            for seed, sign in [(0, 1), (1, -1), (2, 1)]
-        ])
-    assert depth[3] * 5 < depth[1], f"mean depth error after 3 iterations (mm): {depth}"
+    depth = {views: np.array([
+        _refine(scene, NOISY_ORACLE, _perturbed(T_gt, T_cw[0], seed, (-1) ** seed), views)[-1, 2]
+        for seed in range(6)]) for views in (1, 3)}
+    msg = f"depth errors after 3 iterations (mm): {depth}"
+    assert np.median(depth[3]) * 3 < np.median(depth[1]), msg
+    assert np.all(depth[3] < 0.2), msg
 
 
 def test_step_traces_once(scene):
