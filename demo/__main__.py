@@ -4,7 +4,9 @@ Both ways 3PT is used, on full images, on a 2-core CPU in at most 15 minutes, wi
 downloaded and nothing from outside the repository:
 
 1. **Adapted** (``python -m train.adapt``, a user's own parts): five procedural parts of a fixed
-   seed stand for the parts of a cell. Scenes of them are path-traced (Mitsuba) and packed
+   seed stand for the parts of a robot cell (one camera above a tray at a working distance,
+   ``datagen/cell.py``; its depth range sets the pan-and-scan scales). Piles of them in the
+   cell are path-traced (Mitsuba, 640x480, 2 samples per pixel denoised) and packed
    with render banks, a detector (``--config``) is trained from scratch for ``--minutes``,
    then a refiner (3PT-R, ``train/configs/refiner.py:tiny``) for ``--refiner-minutes`` on the
    same records. The best detector checkpoint (full-image AP50 on val scenes) detects every
@@ -12,7 +14,7 @@ downloaded and nothing from outside the repository:
    refines it: box AP50, and BOP 6D AP, AP-mm and segmentation AP before refinement (object
    generation alone) and after it.
 2. **Zero-shot**: five other procedural parts, never seen in training, are onboarded from
-   their meshes alone and detected by the same detector in scenes of their own (val scenes
+   their meshes alone and detected by the same detector in a cell of their own (val scenes
    choose the overlay threshold, test scenes give the figures), and refined by the same
    refiner, which never saw them either.
 
@@ -72,9 +74,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p.add_argument("--minutes", type=float, default=4.0, help="training budget")
     p.add_argument("--config", default="tiny", choices=CONFIGS,
                    help="detector config (tiny: the most steps in a few minutes)")
-    p.add_argument("--refiner-minutes", type=float, default=3.0,
+    p.add_argument("--refiner-minutes", type=float, default=2.0,
                    help="refiner training budget (0: no refiner, object generation alone)")
-    p.add_argument("--train-scenes", type=int, default=30, help="4 images each")
+    p.add_argument("--train-scenes", type=int, default=100, help="one image each (a cell)")
     p.add_argument("--test-scenes", type=int, default=4, help="2 images each, per setting")
     args = p.parse_args(argv)
     total = time.perf_counter()

@@ -101,9 +101,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                         "0: no refiner, the test scores object generation alone")
     p.add_argument("--refiner-config", default="tiny", choices=CONFIGS,
                    help="train/configs/refiner.py config")
-    p.add_argument("--train-scenes", type=int, default=40,
-                   help="training scenes, 4 images each (in a cell: the same pile under other "
-                        "lamps and rig jitter; a new scene costs a Mitsuba scene build)")
+    p.add_argument("--train-scenes", type=int, default=160,
+                   help="training scenes: one image each in a cell (a new pile costs about what "
+                        "another capture of the same pile does, bench/datagen.py), 4 random "
+                        "views each with --layout mixed")
     p.add_argument("--test-scenes", type=int, default=6,
                    help="2 images each, and as many val scenes")
     p.add_argument("--layout", default="cell", choices=("cell", "mixed"),
@@ -173,8 +174,9 @@ def generate(args, data: pathlib.Path, sets: Sequence[str] = ("train", "val", "t
               "--max-depth", "3", "--instances", str(args.instances), "--layout", args.layout,
               "--distinct", "1", str(min(args.instances, 6)), "--val-fraction", "0",
               "--seed", str(args.seed), "--quiet"]
+    per_scene = "1" if args.layout == "cell" else "4"
     runs = {"train": ["--split", "train", "--num-scenes", str(args.train_scenes),
-                      "--images-per-scene", "4"]}
+                      "--images-per-scene", per_scene]}
     for shard, name in enumerate(("val", "test")):
         runs[name] = ["--split", "val", "--num-scenes", str(2 * args.test_scenes),
                       "--images-per-scene", "2", "--num-shards", "2", "--shard", str(shard)]

@@ -179,7 +179,7 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
         REFINER_STEP_SECONDS if c.trainer == "refiner" else MEASURE(c)))
     w = tmp_path / "w"
     argv = ["--meshes", "procedural:2", "--seed", "3", "--workdir", str(w), "--minutes", "0.15",
-            "--config", "tiny", "--train-scenes", "2", "--test-scenes", "1", "--resolution",
+            "--config", "tiny", "--train-scenes", "4", "--test-scenes", "1", "--resolution",
             "96", "80", "--spp", "1", "--instances", "3", "--overlays", "1",
             "--refiner-minutes", "0.06"]
     report = adapt.main(argv)
