@@ -9,6 +9,7 @@ import pytest
 
 from threept_jax.losses.detection import (
     DetectorLossConfig,
+    centre_assignment,
     detection_loss,
     make_targets,
     orientation_loss,
@@ -168,6 +169,65 @@ def test_one_to_many_matching_hand_case():
     np.testing.assert_allclose(float(m["loss_orientation"]), orient_ref, rtol=1e-5)
     with pytest.raises(ValueError, match="matches_per_target"):
         DetectorLossConfig(matches_per_target=0)
+
+
+def _centre_assignment_loop(boxes, mask, g, radius):
+    """Brute force over patches and targets, float64, written from the rule's wording."""
+    b, m = mask.shape
+    out = np.zeros((b, m, g * g), bool)
+    for bi in range(b):
+        for p in range(g * g):
+            px, py = (p % g + 0.5) / g, (p // g + 0.5) / g
+            best, best_area = None, math.inf
+            for mi in range(m):
+                if not mask[bi, mi]:
+                    continue
+                cx, cy, w, h = (float(v) for v in boxes[bi, mi])
+                cx = min(max(cx, 0.5 / g), 1 - 0.5 / g)
+                cy = min(max(cy, 0.5 / g), 1 - 0.5 / g)
+                near = (abs(px - cx) <= max(radius * w / 2, 0.5 / g + 1e-6)
+                        and abs(py - cy) <= max(radius * h / 2, 0.5 / g + 1e-6))
+                if near and w * h < best_area:
+                    best, best_area = mi, w * h
+            if best is not None:
+                out[bi, best, p] = True
+    return out
+
+
+@pytest.mark.parametrize("radius", [0.25, 0.5, 1.0])
+def test_centre_assignment_matches_a_loop(radius):
+    rng = np.random.default_rng(4)
+    boxes = np.concatenate([rng.uniform(-0.3, 1.3, (6, 5, 2)), rng.uniform(0.02, 0.9, (6, 5, 2))],
+                           -1).astype(np.float32)
+    mask = rng.random((6, 5)) < 0.8
+    got = np.asarray(centre_assignment(jnp.asarray(boxes), jnp.asarray(mask), 64, radius=radius))
+    np.testing.assert_array_equal(got, _centre_assignment_loop(boxes, mask, 8, radius))
+    # Every valid target owns at least one patch unless a smaller box took all of its own.
+    assert got.any(-1)[mask].mean() > 0.8 and not got[~mask].any()
+    with pytest.raises(ValueError, match="square patch grid"):
+        centre_assignment(jnp.asarray(boxes), jnp.asarray(mask), 60, radius=radius)
+
+
+def test_centre_assignment_hand_case_loss():
+    # A 2 x 2 grid, one target over the left half: patches 0 and 2 (left column) are its
+    # positives whatever the predictions, and every positive regresses the target's box.
+    gt = jnp.asarray([[[0.25, 0.5, 0.5, 1.0]]])
+    preds = np.array([[0.3, 0.4, 0.4, 0.8], [0.75, 0.25, 0.5, 0.5], [0.2, 0.6, 0.5, 0.9],
+                      [0.75, 0.75, 0.5, 0.5]], np.float32)
+    presence = np.array([0.5, 2.0, -1.0, -3.0], np.float32)
+    outputs = {"boxes": jnp.asarray(preds)[None], "presence_logits": jnp.asarray(presence)[None]}
+    targets = {"boxes": gt, "mask": jnp.asarray([[True]])}
+    cfg = DetectorLossConfig(assignment="centre", orientation_weight=0.0, soft_matching=0.0)
+    _, m = detection_loss(outputs, targets, cfg)
+    presence_ref = sum(focal(float(x), i in (0, 2)) for i, x in enumerate(presence)) / 2
+    l1_ref = sum(np.abs(preds[i] - np.asarray(gt[0, 0])).sum() for i in (0, 2)) / 2
+    assert float(m["num_boxes"]) == 2.0
+    np.testing.assert_allclose(float(m["loss_presence"]), presence_ref, rtol=1e-5)
+    np.testing.assert_allclose(float(m["loss_l1"]), l1_ref, rtol=1e-5)
+    with pytest.raises(ValueError, match="leave it at 1"):
+        DetectorLossConfig(assignment="centre", matches_per_target=4)
+    with pytest.raises(ValueError, match="assignment must be one of"):
+        DetectorLossConfig(assignment="nearest")
 
 
 # -- orientation of every hypothesis, hard negatives (float64 NumPy reference) --------------

@@ -35,7 +35,13 @@ same object are negatives whose boxes are never trained, so the soft-scaled weig
 near 1 and a small model trained from scratch learns presence very slowly; k > 1 gives it
 dense positives. Duplicates cost nothing at inference, which runs NMS anyway.
 
-Each term is summed and divided by the number of matched targets in the batch (DETR's
+**Centre assignment** (``assignment="centre"``, :func:`centre_assignment`): positives by place
+instead of by cost, as one-stage detectors assign them (FCOS, Tian et al. ICCV 2019, centre
+sampling): the patches over the central ``centre_radius`` of each box, at least the one holding
+its centre. No Hungarian matching (no host callback), and a patch stays the positive of the
+same object from step to step, where the matching moves the positives with the predictions.
+
+Each term is summed and divided by the number of positive hypotheses in the batch (DETR's
 normalisation; under ``jit`` with a sharded batch the sum is global). Weights and focal
 parameters come from :class:`DetectorLossConfig` (or any object with the same attribute names,
 e.g. an ``ml_collections.ConfigDict``).
@@ -46,6 +52,7 @@ Shapes: B tiles, P hypotheses, M padded targets per tile, T templates, E embeddi
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import jax
@@ -56,6 +63,10 @@ from threept_jax.losses.focal import sigmoid_focal_loss
 from threept_jax.losses.matcher import detection_cost, hungarian_match
 
 Array = jax.Array
+
+
+#: How hypotheses become positives: DETR's Hungarian matching or the patches at a box's centre.
+ASSIGNMENTS = ("hungarian", "centre")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,12 +95,21 @@ class DetectorLossConfig:
     soft_matching: float = 1.0
     matches_per_target: int = 1
     orientation_negatives: int = 8
+    assignment: str = "hungarian"
+    centre_radius: float = 0.5
 
     def __post_init__(self):
         if not 0.0 <= self.soft_matching <= 1.0:
             raise ValueError(f"soft_matching (lambda) must be in [0, 1], got {self.soft_matching}")
         if self.matches_per_target < 1:
             raise ValueError(f"matches_per_target must be >= 1, got {self.matches_per_target}")
+        if self.assignment not in ASSIGNMENTS:
+            raise ValueError(f"assignment must be one of {ASSIGNMENTS}, got {self.assignment!r}")
+        if self.assignment == "centre" and self.matches_per_target != 1:
+            raise ValueError("matches_per_target repeats targets for the Hungarian matching; "
+                             "with assignment='centre' leave it at 1")
+        if not 0.0 < self.centre_radius <= 1.0:
+            raise ValueError(f"centre_radius must be in (0, 1], got {self.centre_radius}")
         if self.orientation_negatives < 0:
             raise ValueError(f"orientation_negatives must be >= 0 (0: all templates), got "
                              f"{self.orientation_negatives}")
@@ -142,6 +162,32 @@ def repeat_targets(targets: dict[str, Array], k: int) -> dict[str, Array]:
 
 
 # -- loss pieces --------------------------------------------------------------------------
+
+
+def centre_assignment(target_boxes: Array, target_mask: Array, num_patches: int, *,
+                      radius: float) -> Array:
+    """[B, M, P] positives by place (FCOS-style centre sampling on the patch grid).
+
+    Patch p (centre c_p on the square grid of ``num_patches`` row-major patches) is a positive
+    of target m when ``|c_p - c_m| <= max(radius * size_m / 2, half a patch)`` on both axes:
+    the patches over the central ``radius`` of the box, and at least the patch holding its
+    centre. A centre outside the tile (amodal boxes) is first moved to the nearest patch centre
+    inside it, so every valid target has a positive. A patch claimed by several targets goes
+    to the smallest box (FCOS). target_boxes [B, M, 4] normalised cxcywh, target_mask [B, M].
+    """
+    g = math.isqrt(num_patches)
+    if g * g != num_patches:
+        raise ValueError(f"centre assignment needs a square patch grid, got {num_patches} patches")
+    y, x = jnp.meshgrid(jnp.arange(g), jnp.arange(g), indexing="ij")
+    centres = (jnp.stack([x.reshape(-1), y.reshape(-1)], -1) + 0.5) / g  # [P, 2]
+    half = 0.5 / g
+    box_centre = jnp.clip(target_boxes[..., :2], half, 1.0 - half)  # [B, M, 2]
+    reach = jnp.maximum(radius * target_boxes[..., 2:] / 2, half + 1e-6)  # [B, M, 2]
+    inside = jnp.all(jnp.abs(centres[None, None] - box_centre[:, :, None]) <= reach[:, :, None],
+                     -1) & target_mask[..., None]  # [B, M, P]
+    area = jnp.where(target_mask, target_boxes[..., 2] * target_boxes[..., 3], jnp.inf)
+    owner = jnp.argmin(jnp.where(inside, area[..., None], jnp.inf), axis=1)  # [B, P]
+    return inside & (owner[:, None, :] == jnp.arange(target_boxes.shape[1])[None, :, None])
 
 
 def soft_negative_weights(pred_boxes: Array, target_boxes: Array, target_mask: Array,
@@ -229,7 +275,8 @@ def detection_loss(outputs: dict[str, Array], targets: dict[str, Array],
     matched targets, the mean IoU of matched pairs and the orientation top-1 accuracy.
     """
     _check_orientation_inputs(outputs, targets, config)
-    targets = repeat_targets(targets, int(getattr(config, "matches_per_target", 1)))
+    if config.assignment == "hungarian":
+        targets = repeat_targets(targets, int(config.matches_per_target))
     pred_boxes = outputs["boxes"].astype(jnp.float32)
     presence = outputs["presence_logits"].astype(jnp.float32)
     tgt_boxes = targets["boxes"].astype(jnp.float32)
@@ -238,37 +285,40 @@ def detection_loss(outputs: dict[str, Array], targets: dict[str, Array],
     if tgt_boxes.shape[0] != b or tgt_mask.shape != tgt_boxes.shape[:2]:
         raise ValueError(f"targets for {tgt_boxes.shape[0]} tiles, outputs for {b}")
 
-    cost = detection_cost(
-        jax.lax.stop_gradient(pred_boxes), jax.lax.stop_gradient(presence), tgt_boxes,
-        class_weight=config.cost_class, l1_weight=config.cost_l1, giou_weight=config.cost_giou,
-        focal_alpha=config.focal_alpha, focal_gamma=config.focal_gamma)
-    matched_pred = hungarian_match(cost, tgt_mask)  # [B, M]
-    valid = tgt_mask & (matched_pred >= 0)
-    num_boxes = jnp.maximum(jnp.sum(valid), 1).astype(jnp.float32)
-    safe_idx = jnp.maximum(matched_pred, 0)
+    if config.assignment == "centre":
+        onehot = centre_assignment(tgt_boxes, tgt_mask, p, radius=config.centre_radius)
+    else:
+        cost = detection_cost(
+            jax.lax.stop_gradient(pred_boxes), jax.lax.stop_gradient(presence), tgt_boxes,
+            class_weight=config.cost_class, l1_weight=config.cost_l1,
+            giou_weight=config.cost_giou, focal_alpha=config.focal_alpha,
+            focal_gamma=config.focal_gamma)
+        matched_pred = hungarian_match(cost, tgt_mask)  # [B, M], -1: unmatched
+        onehot = (matched_pred[..., None] == jnp.arange(p)) & tgt_mask[..., None]
+    # Every positive hypothesis has exactly one target: its box, per hypothesis.
+    is_matched = jnp.any(onehot, axis=1)  # [B, P]
+    num_boxes = jnp.maximum(jnp.sum(is_matched), 1).astype(jnp.float32)
+    hyp_target = jnp.einsum("bmp,bmc->bpc", onehot.astype(jnp.float32), tgt_boxes)  # [B, P, 4]
 
     # Presence, with soft-scaled negatives.
-    onehot = (safe_idx[..., None] == jnp.arange(p)) & valid[..., None]  # [B, M, P]
-    is_matched = jnp.any(onehot, axis=1)  # [B, P]
     w_neg = soft_negative_weights(pred_boxes, tgt_boxes, tgt_mask, is_matched, config.soft_matching)
     loss_presence = jnp.sum(sigmoid_focal_loss(
         presence, is_matched, alpha=config.focal_alpha, gamma=config.focal_gamma,
         negative_weight=w_neg)) / num_boxes
 
-    # Boxes on matched pairs.
-    matched_boxes = jnp.take_along_axis(pred_boxes, safe_idx[..., None], axis=1)  # [B, M, 4]
-    l1 = jnp.sum(jnp.abs(matched_boxes - tgt_boxes), -1)
-    giou = _paired_giou(matched_boxes, tgt_boxes)
-    loss_l1 = jnp.sum(jnp.where(valid, l1, 0.0)) / num_boxes
-    loss_giou = jnp.sum(jnp.where(valid, 1.0 - giou, 0.0)) / num_boxes
-    iou = box_iou(cxcywh_to_xyxy(matched_boxes)[..., None, :],
-                  cxcywh_to_xyxy(tgt_boxes)[..., None, :])
+    # Boxes of the positive hypotheses.
+    l1 = jnp.sum(jnp.abs(pred_boxes - hyp_target), -1)
+    giou = _paired_giou(pred_boxes, hyp_target)
+    loss_l1 = jnp.sum(jnp.where(is_matched, l1, 0.0)) / num_boxes
+    loss_giou = jnp.sum(jnp.where(is_matched, 1.0 - giou, 0.0)) / num_boxes
+    iou = box_iou(cxcywh_to_xyxy(pred_boxes)[..., None, :],
+                  cxcywh_to_xyxy(hyp_target)[..., None, :])[..., 0, 0]
     metrics = {
         "loss_presence": loss_presence,
         "loss_l1": loss_l1,
         "loss_giou": loss_giou,
-        "num_boxes": jnp.sum(valid).astype(jnp.float32),
-        "matched_iou": jnp.sum(jnp.where(valid, iou[..., 0, 0], 0.0)) / num_boxes,
+        "num_boxes": jnp.sum(is_matched).astype(jnp.float32),
+        "matched_iou": jnp.sum(jnp.where(is_matched, iou, 0.0)) / num_boxes,
     }
     loss = (config.presence_weight * loss_presence + config.l1_weight * loss_l1
             + config.giou_weight * loss_giou)
