@@ -22,7 +22,8 @@ def bop_models_dir():
     return SHARED_MESHES
 
 
-#: Modules whose tests take minutes (compilations, training runs): scheduled first, so that the
+#: Modules whose tests take minutes (compilations, training runs), marked ``slow`` (``pytest -m
+#: "not slow"`` is the quick loop) and scheduled first, so that the
 #: two xdist workers run them side by side while the many short tests fill the gaps at the end
 #: (``make test`` groups each module on one worker, ``--dist loadscope``, so a module's compiled
 #: fixtures are built once).
@@ -43,4 +44,7 @@ def pytest_collection_modifyitems(config, items):
         path = pathlib.Path(str(item.fspath)).resolve().relative_to(ROOT).as_posix()
         return rank.get(path, len(SLOW_FIRST))
 
+    for item in items:
+        if key(item) < len(SLOW_FIRST):
+            item.add_marker(pytest.mark.slow)
     items.sort(key=key)  # stable: the order within a module and among the rest is kept

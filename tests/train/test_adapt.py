@@ -132,11 +132,10 @@ def small_refiner(args, records):
 
 
 REFINER_CONFIG = adapt.refiner_config
-MEASURE = adapt.measure_step_seconds
-#: The refiner's step time in the test below: measuring it costs one more compilation of the
-#: refiner's step (a minute on 2 cores); the measurement is the detector's code
+#: Step times in the test below: measuring them costs one more compilation of each model's step
+#: (a minute on 2 cores); the measurement has its own test
 #: (test_measure_step_seconds_times_the_configs_trainer).
-REFINER_STEP_SECONDS = 0.5
+STEP_SECONDS = {"detector": 0.2, "refiner": 0.5}
 
 
 def test_measure_step_seconds_times_the_configs_trainer(monkeypatch):
@@ -175,8 +174,7 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
     # The test stage's refinement at the BOP runner tests' size (its loop is tested elsewhere).
     monkeypatch.setattr(api, "SceneRefiner", functools.partial(
         SceneRefiner, loop=LoopSettings(iterations=1), num_hypotheses=2))
-    monkeypatch.setattr(adapt, "measure_step_seconds", lambda c: (
-        REFINER_STEP_SECONDS if c.trainer == "refiner" else MEASURE(c)))
+    monkeypatch.setattr(adapt, "measure_step_seconds", lambda c: STEP_SECONDS[c.trainer])
     w = tmp_path / "w"
     argv = ["--meshes", "procedural:2", "--seed", "3", "--workdir", str(w), "--minutes", "0.15",
             "--config", "tiny", "--train-scenes", "4", "--test-scenes", "1", "--resolution",
@@ -196,7 +194,7 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
         assert entry["steps"] == max(adapt.NUM_EVALS, int(minutes * 60 * (1 - adapt.EVAL_SHARE)
                                                           / entry["step_seconds"]))
         assert entry["minutes"] == minutes and entry["config"] == "tiny"
-    assert budget["refiner"] == {"steps": 6, "step_seconds": REFINER_STEP_SECONDS,
+    assert budget["refiner"] == {"steps": 6, "step_seconds": STEP_SECONDS["refiner"],
                                  "minutes": 0.06, "config": "tiny"}  # int(0.06 * 51 / 0.5)
     run = RunDir(w)
     assert run.checkpoint_steps()[-1] == budget["detector"]["steps"]
