@@ -99,7 +99,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     report = {"adapted": adapted, "zero_shot": unseen,
               "minutes": (time.perf_counter() - total) / 60}
     (args.out / "report.json").write_text(json.dumps(report, indent=1, default=float))
+    from train.adapt import refiner_lines
+
     lines = [*summary("adapted (trained on these 5 parts)", adapted["test"]),
+             *(f"    {line}" for line in refiner_lines(adapted.get("refiner_heldout") or {})),
              *summary("zero-shot (5 parts never seen)", unseen["test"])]
     print(f"\ndone in {report['minutes']:.1f} min. Full images, all parts queried, new scenes:\n"
           + "\n".join(f"  {line}" for line in lines)

@@ -71,7 +71,8 @@ class RefinedPose:
       T_world_obj: [4, 4] refined pose (world frame; the camera frame for one view), mm.
       score: the refiner's score logit of that pose (higher is better; comparable between
         hypotheses of one instance, not calibrated across objects).
-      history: [iterations + 1, 4, 4] the best pose before refinement and after each iteration.
+      history: [iterations + 2, 4, 4] the pose given, the refined best after each iteration,
+        and last the pose kept (``T_world_obj``: the start where refinement did not score higher).
       masks: {view: bool [H, W]} the refiner's visible mask of the object in each view.
     """
 

@@ -379,6 +379,29 @@ def summary_lines(figs: dict) -> list[str]:
     return [f"before refinement: {line('_initial')}", f"after refinement:  {line()}"]
 
 
+def refiner_heldout(refiner: pathlib.Path) -> dict:
+    """The refiner's held-out figures (:func:`train.eval_refiner.evaluate_run` of its best
+    checkpoint on its val records: the same parts in other scenes), ``eval/`` dropped."""
+    from train.eval_refiner import evaluate_run
+
+    return {k.removeprefix("eval/"): v for k, v in evaluate_run(refiner).items()}
+
+
+def refiner_lines(h: dict) -> list[str]:
+    """:func:`refiner_heldout`'s figures as printed lines: rotation error and MSSD AR before and
+    after the refiner's steps, and how often its score picks the best hypothesis (none
+    without a refiner)."""
+    if not h:
+        return []
+    steps = max(int(k.removeprefix("rot_deg_after_")) for k in h
+                if k.startswith("rot_deg_after_"))
+    after = f"rot_deg_after_{steps}"
+    return [f"refiner, held-out crops ({h['num_instances']:.0f} instances x its hypotheses, "
+            f"{steps} steps): median rotation error {h['rot_deg_before']:.1f} -> "
+            f"{h[after]:.1f} deg, MSSD AR {h['ar_mssd_before']:.3f} -> {h['ar_mssd_after']:.3f}; "
+            f"score picks the best hypothesis {h['score_acc']:.2f} of the time"]
+
+
 def test(workdir: pathlib.Path, data: pathlib.Path, out: pathlib.Path, cache: pathlib.Path,
          overlays: int, instances: int, refiner: pathlib.Path | None = None) -> dict:
     """The best checkpoint of ``workdir`` on ``data/val`` (whose best-F1 score becomes the
@@ -435,6 +458,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
                        f"scratch) -> {refiner}")
         train(configs["refiner"], budget["refiner"]["steps"], refiner)
         minutes["refiner_training"] = _done(start) / 60
+        heldout = refiner_heldout(refiner)
+        for line in refiner_lines(heldout):
+            print(f"   {line}")
     elif "refiner" in budget:
         print(f"   note: --refiner-minutes 0: the refiner planned in {w / 'adapt.json'} is "
               "neither trained nor used")
@@ -446,12 +472,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
     report.update(steps=steps, config=configs["detector"].model.variant, minutes=minutes)
     if refiner:
         report.update(refiner_steps=budget["refiner"]["steps"],
-                      refiner_config=configs["refiner"].model.variant)
+                      refiner_config=configs["refiner"].model.variant, refiner_heldout=heldout)
     (w / "report.json").write_text(json.dumps(report, indent=1, default=float))
     figs = report["test"]
     print("\nadapted detector, test scenes (full images, all parts queried): box AP50 "
           f"{figs['box_ap50']:.3f}, AP {figs['box_ap']:.3f}")
-    for line in summary_lines(figs):
+    for line in summary_lines(figs) + refiner_lines(report.get("refiner_heldout") or {}):
         print(f"  {line}")
     print(f"report {w / 'report.json'}, overlays {w / 'test' / 'overlays'}")
     return report

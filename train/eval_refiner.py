@@ -226,16 +226,46 @@ def summarize(r: Mapping[str, np.ndarray], *, num_steps: int,
     return out
 
 
+def evaluate_run(workdir, *, step="best", data_dir=None, num_examples: int | None = None,
+                 subpixel: bool | None = None, untrained: bool = False) -> dict:
+    """The held-out metrics (module docstring) of a refiner run's checkpoint ``step`` (or of the
+    untrained network of its config): the run's ``eval`` settings, ``data_dir`` /
+    ``num_examples`` / ``subpixel`` overriding them when given. Adds ``step``."""
+    from threept_jax.data.run_dir import RunDir
+    from threept_jax.models.refiner import Refiner
+    from train.run_config import default_config, flatten_config
+
+    run = RunDir(workdir, model="refiner")
+    if not run.config_file.exists():
+        raise FileNotFoundError(f"{workdir} is not a refiner training run (no {run.config_file}); "
+                                "pass the workdir of a python -m train.launch --model refiner run")
+    config = default_config("refiner")
+    config.update_from_flattened_dict(flatten_config(run.read_config()))
+    if data_dir:
+        config.eval.data_dir = str(data_dir)
+    if num_examples:
+        config.eval.num_examples = int(num_examples)
+    if subpixel is not None:
+        config.refine.subpixel = bool(subpixel)
+    model, _, loaded = run.load_model(step)
+    if untrained:
+        model = Refiner(model_config(config), rngs=nnx.Rngs(0))
+    graphdef, params = nnx.split(model)
+    mesh = sharding.make_mesh(1, 1, jax.devices()[:1])
+    config.eval.batch_size = min(int(config.eval.batch_size), int(config.eval.num_examples))
+    # The run may have been restored onto every device; the evaluation runs on the first.
+    params = jax.device_put(nnx.to_pure_dict(params), sharding.replicated(mesh))
+    out = RefinerEvaluator(config, graphdef, mesh)(params)
+    out["step"] = "untrained" if untrained else loaded
+    return out
+
+
 def main(argv=None) -> int:
     """``python -m train.eval_refiner --workdir RUN [--step best|latest|N] [--data-dir D]
     [--num-examples N] [--subpixel on|off] [--untrained]``: the held-out evaluation of a refiner
     run's checkpoint (or of the untrained network of its config) as JSON on stdout."""
     import argparse
-    import json
     import sys
-
-    from train import sharding as _sharding
-    from train.run_config import default_config, flatten_config
 
     p = argparse.ArgumentParser(prog="python -m train.eval_refiner", description=main.__doc__)
     p.add_argument("--workdir", required=True, help="a refiner training run")
@@ -247,28 +277,13 @@ def main(argv=None) -> int:
                    help="override the run's refine.subpixel")
     p.add_argument("--untrained", action="store_true", help="evaluate freshly initialised weights")
     args = p.parse_args(argv)
-    from threept_jax.data.run_dir import RunDir
-    from threept_jax.models.refiner import Refiner
-
-    run = RunDir(args.workdir, model="refiner")
-    if not run.config_file.exists():
-        p.error(f"{args.workdir} is not a refiner training run (no {run.config_file})")
-    config = default_config("refiner")
-    config.update_from_flattened_dict(flatten_config(run.read_config()))
-    if args.data_dir:
-        config.eval.data_dir = args.data_dir
-    if args.num_examples:
-        config.eval.num_examples = args.num_examples
-    if args.subpixel:
-        config.refine.subpixel = args.subpixel == "on"
-    model, _, step = run.load_model(args.step)
-    if args.untrained:
-        model = Refiner(model_config(config), rngs=nnx.Rngs(0))
-    graphdef, params = nnx.split(model)
-    mesh = _sharding.make_mesh(1, 1, jax.devices()[:1])
-    config.eval.batch_size = min(int(config.eval.batch_size), int(config.eval.num_examples))
-    out = RefinerEvaluator(config, graphdef, mesh)(nnx.to_pure_dict(params))
-    out["step"] = "untrained" if args.untrained else step
+    try:
+        out = evaluate_run(args.workdir, step=args.step, data_dir=args.data_dir,
+                           num_examples=args.num_examples,
+                           subpixel=None if args.subpixel is None else args.subpixel == "on",
+                           untrained=args.untrained)
+    except FileNotFoundError as e:
+        p.error(str(e))
     json.dump(out, sys.stdout, indent=1)
     print()
     return 0

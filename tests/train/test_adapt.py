@@ -219,6 +219,11 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
     assert saved["steps"] == budget["detector"]["steps"]
     assert saved["refiner_steps"] == budget["refiner"]["steps"]
     assert saved["refiner"] == str(w / "refiner")
+    # The refiner's held-out figures (train.eval_refiner on its val records) beside the AP.
+    held = saved["refiner_heldout"]
+    assert held["num_instances"] > 0 and held["step"] in refiner_run.checkpoint_steps()
+    assert 0.0 <= held["ar_mssd_before"] <= 1.0 and 0.0 <= held["score_acc"] <= 1.0
+    assert held["rot_deg_before"] > 0.0
     overlays = sorted((w / "test" / "overlays").glob("*.png"))
     assert len(overlays) == 1 and cv2.imread(str(overlays[0])).shape[1] >= 640
 

@@ -5,14 +5,20 @@ calibrated views, :func:`refine_instances` runs ``LoopSettings.iterations`` time
 
     crop every view around the instance's current best hypothesis (crop_boxes, anti-aliased)
     render every hypothesis into every crop, run the network on all instances at once
-    reciprocal matches on render edges -> multi-view PnP per hypothesis (update_hypotheses)
     score = the mean of the network's per-view scores over the instance's views
-    drop duplicates up to symmetry, keep the best ceil(K * keep): K = 8 -> 4 -> 2 -> 1
+    reciprocal matches on render edges -> multi-view PnP per hypothesis, each update kept only
+        when the matches back it (update_hypotheses' safety test)
+    drop duplicates up to symmetry, keep the refined best ceil(K * keep): K = 8 -> 4 -> 2 -> 1,
+        and the start beside them, unrefined (pools of 8, 5, 3, 2)
 
-and returns one refined pose per instance, its score, its visible-mask logits per view and the
-final crops' boxes (:class:`LoopResult`). The refinement itself is
-:mod:`threept_jax.pipeline.refinement` (``render_hypotheses``, ``update_hypotheses``), the one
-step training runs too.
+where the start is the input the first look scored best (what selection alone would keep). It
+then looks once more, at the final pool (the refined best and the start), and keeps the one the
+network scores higher. Refinement that moves a pose somewhere the image does not support is
+thus refused twice: step by step by the geometry of the matches, and at the end by the score of
+what it produced against where it started. It returns one pose per instance, the
+score of that pose itself, its visible-mask logits per view and the last crops' boxes
+(:class:`LoopResult`). The refinement itself is :mod:`threept_jax.pipeline.refinement`
+(``render_hypotheses``, ``update_hypotheses``), the one step training runs too.
 
 Static shapes: N, K, V and the sizes fix the compiled program; K after each iteration is known
 at trace time. Pad N to a bin (:func:`pad_to_bin`) with ``instance_mask`` False on the padding
@@ -107,7 +113,9 @@ class LoopSettings:
                              f"{self.duplicate_frac}")
 
     def schedule(self, num_hypotheses: int) -> tuple[int, ...]:
-        """Hypotheses entering each iteration, then the number left: K = 8 -> (8, 4, 2, 1)."""
+        """Refined hypotheses carried out of each iteration, after the K given: K = 8 -> (8, 4,
+        2, 1). Each iteration after the first also sees the start unrefined, so the pools are
+        (8, 5, 3) and the last look scores 2."""
         ks = [int(num_hypotheses)]
         for _ in range(self.iterations):
             ks.append(max(1, math.ceil(ks[-1] * self.keep)))
@@ -118,15 +126,16 @@ class LoopResult(NamedTuple):
     """Output of :func:`refine_instances` (padded instances: see the module docstring).
 
     poses: [N, 4, 4] refined best T_world_obj per instance (mm).
-    scores: [N] score logit of that pose: the network's per-view scores of the hypothesis it
-      was refined from in the last iteration, averaged over the instance's views.
-    mask_logits: [N, V, h, w] the network's visible-mask logits of that hypothesis in each
-      view's final crop (:func:`paste_masks` puts them into the images).
-    boxes: [N, V, 4] the final crops' boxes (pixel-edge xyxy in each view's image).
-    hypotheses: [N, K_final, 4, 4] the hypotheses left, best first; hypothesis_scores:
-      [N, K_final] their scores.
-    history: [N, iterations + 1, 4, 4] the best pose before refinement (the input's first
-      hypothesis) and after each iteration.
+    scores: [N] score logit of that pose, rendered and seen by the network in the last look
+      (the mean of its per-view scores over the instance's views).
+    mask_logits: [N, V, h, w] the network's visible-mask logits of that pose in each view's
+      last crop (:func:`paste_masks` puts them into the images).
+    boxes: [N, V, 4] the last crops' boxes (pixel-edge xyxy in each view's image).
+    hypotheses: [N, k + 1, 4, 4] the last pool in score order: the k refined hypotheses
+      carried out of the last iteration (``LoopSettings.schedule``, 1 by default) and the
+      start (module docstring), unrefined; hypothesis_scores [N, k + 1] their scores.
+    history: [N, iterations + 2, 4, 4] the input's first hypothesis, the refined best after
+      each iteration, and last the pose returned (``poses``).
     """
 
     poses: Array
@@ -322,8 +331,9 @@ def refine_instances(network: Network, meshes: RasterMesh, mesh_index: Array, im
     diameter = meshes.diameter[mesh_index]
     views = jnp.maximum(jnp.sum(view_mask, -1), 1)
 
-    history = [hyps[:, 0]]
-    for k_next in schedule[1:]:
+    def look(hyps):
+        """Crop every view around each instance's first hypothesis, render all of them, run
+        the network: (boxes, crop_K, renders, outputs, score [N, K])."""
         def crop_one(index, best):
             box = crop_boxes(mesh_of(index), best, T_cam_world, Ks, margin=loop.crop_margin)
             return (box,) + antialiased_crops(images, Ks, box, crop_size, loop.antialias)
@@ -335,22 +345,40 @@ def refine_instances(network: Network, meshes: RasterMesh, mesh_index: Array, im
                                      output_size=output_size, ambient=settings.ambient)
 
         rend = jax.vmap(render_one)(mesh_index, crop_K, hyps)
-        out = network(crops, rend.rgb)
+        out = dict(network(crops, rend.rgb))
+        score = jnp.sum(jnp.where(view_mask[:, None], out["view_scores"], 0.0), -1)
+        return boxes, crop_K, rend, out, score / views[:, None]
+
+    def take(x, index):  # x [N, K, ...], index [N, k] -> [N, k, ...]
+        return jnp.take_along_axis(x, index.reshape(index.shape + (1,) * (x.ndim - 2)), axis=1)
+
+    history, start = [hyps[:, 0]], None
+    for k_next in schedule[1:]:
+        boxes, crop_K, rend, out, score = look(hyps)
 
         def update_one(o, r, index, cK, h, vm):
             return update_hypotheses(o, r, mesh_of(index), cK, T_cam_world, h, settings, vm)
 
-        res = jax.vmap(update_one)(dict(out), rend, mesh_index, crop_K, hyps, view_mask)
-        score = jnp.sum(jnp.where(view_mask[:, None], res.view_scores, 0.0), -1) / views[:, None]
+        res = jax.vmap(update_one)(out, rend, mesh_index, crop_K, hyps, view_mask)
         select = functools.partial(select_hypotheses, num_keep=k_next,
                                    max_deg=loop.duplicate_deg, max_frac=loop.duplicate_frac)
         keep = jax.vmap(select)(res.hypotheses, score, symmetries, symmetry_mask,
                                 diameter)  # [N, k_next]
-        hyps = jnp.take_along_axis(res.hypotheses, keep[:, :, None, None], axis=1)
-        scores = jnp.take_along_axis(score, keep, axis=1)
-        mask_logits = jnp.take_along_axis(res.mask_logits, keep[:, :1, None, None, None],
-                                          axis=1)[:, 0]
+        if start is None:  # the first look's best-scored input: what selection alone keeps
+            start = take(hyps, keep[:, :1])
+        # The start goes on unrefined beside the refined ones: every later look scores it
+        # against what refinement made of the poses, so refinement the image does not support
+        # is not kept.
+        hyps = jnp.concatenate([take(res.hypotheses, keep), start], axis=1)
         history.append(hyps[:, 0])
+
+    # The last look: score the final pool (the refined best and the start) and keep the
+    # higher; its score, mask and crop are the result's.
+    boxes, _, _, out, score = look(hyps)
+    order = jnp.argsort(-jnp.where(jnp.isnan(score), -jnp.inf, score), axis=1, stable=True)
+    hyps, scores = take(hyps, order), take(score, order)
+    mask_logits = take(out["mask_logits"], order[:, :1])[:, 0]
+    history.append(hyps[:, 0])
 
     def pad(x, fill):
         m = instance_mask.reshape((N,) + (1,) * (x.ndim - 1))

@@ -52,7 +52,7 @@ def _pool(img: jax.Array, size: int):
 
 
 def make_oracle(output_size: int, *, sigma: float = 0.35, num_features: int = 192,
-                noise: float = 0.0, seed: int = 0):
+                noise: float = 0.0, outliers: float = 0.0, seed: int = 0):
     """An oracle ``network(real [1, V, H, W, 3], renders [1, K, V, H, W, 3]) -> dict``.
 
     Follows the refiner contract's outputs at map size h = ``output_size`` (H a multiple of h):
@@ -66,12 +66,24 @@ def make_oracle(output_size: int, *, sigma: float = 0.35, num_features: int = 19
       noise: standard deviation of Gaussian noise added to every descriptor component times
         sqrt(2 D + 1) (so ``noise`` is the noise-to-signal norm ratio) before renormalising;
         a fixed pattern per pixel drawn from ``seed``, different for real and render maps.
+      outliers: share of the real map's object pixels whose descriptor is that of another,
+        random point of the object's bounding box (a fixed pattern per pixel drawn from
+        ``seed``): wrong matches, as a network makes on a part it does not know.
+        ``noise`` and ``outliers`` may be traced (an oracle made inside ``jit``).
 
     Create one oracle and reuse it: jit caches the step per network function object.
     """
     if num_features % 3:
         raise ValueError(f"oracle: num_features must be a multiple of 3, got {num_features}")
-    key_w, key_n, key_real, key_render = jax.random.split(jax.random.key(seed), 4)
+    concrete = isinstance(noise, (int, float)) and isinstance(outliers, (int, float))
+    if concrete and (not 0.0 <= outliers <= 1.0 or not noise >= 0.0):
+        raise ValueError(f"oracle: outliers must be in [0, 1] and noise >= 0, got {outliers} "
+                         f"and {noise}")
+    # Traced levels (an oracle made inside a jitted function, one compilation for a whole
+    # ladder of levels) always take the noisy path; Python zeros skip it.
+    noisy = not concrete or noise > 0
+    wrong_share = not concrete or outliers > 0
+    key_w, key_n, key_real, key_render, key_out = jax.random.split(jax.random.key(seed), 5)
     # Orthogonal random features: triples of orthogonal directions, one chi(3) radius per
     # triple. Each triple adds rho^2 I to sum w w^T, so the kernel's curvature at 0 is exactly
     # isotropic (plain Gaussian frequencies leave ~sqrt(2 / D) of anisotropy).
@@ -87,7 +99,7 @@ def make_oracle(output_size: int, *, sigma: float = 0.35, num_features: int = 19
         e = e / np.sqrt(num_features)
         bg = jnp.zeros((C,)).at[-1].set(1.0)
         e = jnp.where(fg[..., None], e, bg)
-        if noise > 0:
+        if noisy:
             e = e + noise / np.sqrt(C) * jax.random.normal(key, e.shape)
             e = e / jnp.linalg.norm(e, axis=-1, keepdims=True)
         return e
@@ -97,6 +109,11 @@ def make_oracle(output_size: int, *, sigma: float = 0.35, num_features: int = 19
         renders = jnp.asarray(renders, jnp.float32)
         K = renders.shape[1]
         real_c, real_fg = _pool(real, output_size)  # [1, V, h, w, 3]
+        if wrong_share:
+            k_pick, k_where = jax.random.split(key_out)
+            wrong = jax.random.uniform(k_where, real_c.shape[:-1]) < outliers
+            other = jax.random.uniform(k_pick, real_c.shape, minval=0.05, maxval=0.95)
+            real_c = jnp.where(wrong[..., None], other, real_c)
         rend_c, rend_fg = _pool(renders, output_size)  # [1, K, V, h, w, 3]
         F = embed(real_c, real_fg, key_real)
         Z = embed(rend_c, rend_fg, key_render)
