@@ -24,7 +24,7 @@ import numpy as np
 from tqdm import tqdm
 
 from infer.api import Camera, refine, run_scene
-from infer.cli import detector_options, load_models
+from infer.options import detector_options, load_models
 
 #: Images without detections named one by one on the console; the rest are counted.
 MAX_EMPTY_LINES = 10

@@ -34,16 +34,16 @@ import cv2
 import numpy as np
 
 from infer.api import prepare_views, track
-from infer.cli import (
-    _cameras,
-    _common,
-    _int_at_least,
-    _number_in,
-    _read_rgb,
+from infer.options import (
     camera_options,
+    cameras_from_args,
+    common_options,
     detector_options,
+    int_at_least,
     load_models,
+    number_in,
     parse_meshes,
+    read_rgb,
     refiner_options,
 )
 from threept_jax.geometry.validate import validate_rigid
@@ -56,7 +56,7 @@ def add_track_parser(sub) -> argparse.ArgumentParser:
     """Register ``track`` on the ``python -m infer`` subparsers ``sub``."""
     p = sub.add_parser("track", help="track objects through image sequences or a video (3PT-R)",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    _common(p, workdir_when="without --init (the first frame is detected) and for re-detection "
+    common_options(p, workdir_when="without --init (the first frame is detected) and for re-detection "
                             "(--min-score, or nothing tracked)")
     refiner_options(p, "refine every tracked object in every frame", required=True)
     p.add_argument("--mesh", action="append", required=True, metavar="ID=PATH",
@@ -69,14 +69,14 @@ def add_track_parser(sub) -> argparse.ArgumentParser:
                           "each, in natural name order (frame2 before frame10)")
     src.add_argument("--video", type=pathlib.Path, metavar="FILE",
                      help="a video file (one view; any format OpenCV reads)")
-    p.add_argument("--max-frames", type=_int_at_least(1), default=None,
+    p.add_argument("--max-frames", type=int_at_least(1), default=None,
                    help="stop after this many frames")
     camera_options(p, "view")
     p.add_argument("--init", type=pathlib.Path, metavar="FILE",
                    help='initial poses: JSON list of {"obj_id": int, "T_world_obj": 4x4 (mm; '
                         'the camera frame for one view)}; without it the first frame is '
                         "detected (--workdir)")
-    p.add_argument("--min-score", type=_number_in(np.isfinite, "a finite number"), default=None,
+    p.add_argument("--min-score", type=number_in(np.isfinite, "a finite number"), default=None,
                    help="re-detect (needs --workdir) when a tracked instance's refiner score "
                         "logit falls under this; default: never (the score is not calibrated "
                         "across objects: pick a threshold from the scores of track.jsonl)")
@@ -130,7 +130,7 @@ def open_frames(args) -> tuple[Iterator[list[np.ndarray]], int | None, int]:
         count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         return _video_frames(cap), count if count > 0 else None, 1
     views = frame_files(args.frames)
-    frames = ([_read_rgb(v[i]) for v in views] for i in range(len(views[0])))
+    frames = ([read_rgb(v[i]) for v in views] for i in range(len(views[0])))
     return frames, len(views[0]), len(views)
 
 
@@ -230,7 +230,7 @@ def run_track(args) -> dict:
     if args.cameras is None and len(args.K or ()) != V:
         raise ValueError(f"{len(args.K or ())} --K for {V} view(s): give one --K fx,fy,cx,cy "
                          "per view or --cameras FILE")
-    cameras = _cameras(args, V)
+    cameras = cameras_from_args(args, V)
     if V > 1 and any(c.T_cam_world is None for c in cameras):
         raise ValueError(f"{V} views need each camera's pose: --cameras FILE with "
                          '"T_cam_world" (4x4, world -> camera, mm) for every view')

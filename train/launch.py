@@ -115,7 +115,7 @@ def main(argv) -> None:
     sharding.maybe_initialize_distributed(config.distributed)
     import jax
 
-    from train.trainer import trainer_class
+    from train.trainers import trainer_class
 
     print(f"process {jax.process_index()}/{jax.process_count()}, devices: {jax.devices()}",
           flush=True)

@@ -405,16 +405,3 @@ class Trainer:
             self.close()
             logger.close()
         return summary
-
-
-def trainer_class(config) -> type[Trainer]:
-    """The trainer of ``config.trainer``: ``"refiner"`` trains 3PT-R
-    (:class:`train.trainer_refiner.RefinerTrainer`), anything else 3PT-D
-    (:class:`train.trainer_detector.DetectorTrainer`)."""
-    if config.trainer == "refiner":
-        from train.trainer_refiner import RefinerTrainer
-
-        return RefinerTrainer
-    from train.trainer_detector import DetectorTrainer
-
-    return DetectorTrainer

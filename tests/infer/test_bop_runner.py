@@ -203,14 +203,14 @@ def _by_image(rows):
 
 
 def test_load_models_passes_the_refiner_run(monkeypatch, tmp_path):
-    from infer import cli
+    from infer import cli, options
 
     seen = {}
-    monkeypatch.setattr(cli, "load", lambda *a, **k: seen.update(args=a, **k))
+    monkeypatch.setattr(options, "load", lambda *a, **k: seen.update(args=a, **k))
     args = cli.build_parser().parse_args(
         ["bop", "--workdir", "d", "--refiner", "r", "--refiner-step", "7", "--dataset-dir", "x",
          "--out", "o", "--cache-dir", str(tmp_path)])
-    cli.load_models(args)
+    options.load_models(args)
     assert seen["args"] == ("d", "best") and str(seen["refiner"]) == "r"
     assert seen["refiner_step"] == 7
 

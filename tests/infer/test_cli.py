@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from infer import cli
-from infer.cli import _cameras, build_parser, main
+from infer.cli import build_parser, main
+from infer.options import cameras_from_args
 from infer.scene import Instances
 from infer.visualize import caption_band_height
 from tests.fixtures.cli import fails_naming
@@ -36,24 +37,24 @@ def _images_argv(tmp_path, *extra):
 
 
 def test_k_flags_and_camera_files_become_cameras(tmp_path):
-    (cam,) = _cameras(_args(tmp_path, "--K", "600,610,319.5,239.5"), 1)
+    (cam,) = cameras_from_args(_args(tmp_path, "--K", "600,610,319.5,239.5"), 1)
     np.testing.assert_array_equal(cam.K, [[600, 0, 319.5], [0, 610, 239.5], [0, 0, 1]])
     assert cam.T_cam_world is None and cam.calibration_hw is None
     T = np.eye(4)
     T[:3, 3] = [10.0, -5.0, 700.0]
     path = tmp_path / "cams.json"
     path.write_text(json.dumps([{"K": cam.K.tolist(), "T_cam_world": T.tolist()}]))
-    (rig,) = _cameras(_args(tmp_path, "--cameras", str(path)), 1)
+    (rig,) = cameras_from_args(_args(tmp_path, "--cameras", str(path)), 1)
     np.testing.assert_array_equal(rig.T_cam_world, T)
 
 
 def test_calibration_size_reaches_the_cameras_as_height_width(tmp_path):
-    (cam,) = _cameras(_args(tmp_path, "--K", "1000,1000,639.5,479.5", "--calibration-size",
+    (cam,) = cameras_from_args(_args(tmp_path, "--K", "1000,1000,639.5,479.5", "--calibration-size",
                             "1280", "960"), 1)
     assert cam.calibration_hw == (960, 1280)
     path = tmp_path / "cams.json"
     path.write_text(json.dumps([{"K": cam.K.tolist(), "calibration_size": [1920, 1080]}]))
-    (own,) = _cameras(_args(tmp_path, "--cameras", str(path), "--calibration-size", "1280",
+    (own,) = cameras_from_args(_args(tmp_path, "--cameras", str(path), "--calibration-size", "1280",
                             "960"), 1)
     assert own.calibration_hw == (1080, 1920)  # a camera's own entry wins
 
@@ -76,14 +77,14 @@ def test_bad_camera_arguments_name_the_problem(tmp_path):
     path = tmp_path / "cams.json"
     path.write_text(json.dumps([{"T_cam_world": np.eye(4).tolist()}]))
     with pytest.raises(ValueError, match='camera 0 has no "K"'):
-        _cameras(_args(tmp_path, "--cameras", str(path)), 1)
+        cameras_from_args(_args(tmp_path, "--cameras", str(path)), 1)
     with pytest.raises(ValueError, match="four numbers"):
-        _cameras(_args(tmp_path, "--K", "600,610,319.5"), 1)
+        cameras_from_args(_args(tmp_path, "--K", "600,610,319.5"), 1)
     with pytest.raises(ValueError, match="one --K"):
-        _cameras(_args(tmp_path), 1)
+        cameras_from_args(_args(tmp_path), 1)
     path.write_text("[{")
     with pytest.raises(ValueError, match="cams.json is not valid JSON"):
-        _cameras(_args(tmp_path, "--cameras", str(path)), 1)
+        cameras_from_args(_args(tmp_path, "--cameras", str(path)), 1)
 
 
 def test_camera_with_a_bad_bottom_row_is_labelled_t_cam_world(tmp_path):

@@ -1,0 +1,208 @@
+"""The options the ``python -m infer`` commands share (``bop``, ``images``, ``track``) and the
+readers of what they name: argparse types that refuse bad values with a message naming the rule,
+the common detector/output options, the refiner and camera options, cameras from ``--K`` or
+``--cameras``, ``--mesh ID=PATH``, images, and the models a command loads.
+
+:mod:`infer.cli` (the parser and ``images``), :mod:`infer.bop_runner` and :mod:`infer.track_cli`
+import this module; it imports none of them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from infer.api import DEFAULT_CACHE, Camera, load
+from infer.onboarding import ONBOARD_TEMPLATES
+from threept_jax.geometry.validate import validate_intrinsics, validate_rigid
+
+
+def int_at_least(low: int):
+    """An argparse ``type``: an integer >= ``low`` (argparse prints ``error: argument --flag:
+    ...`` and exits 2 otherwise)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be >= {low}, got {value}")
+        return value
+
+    return parse
+
+
+def number_in(accepts, rule: str):
+    """An argparse ``type``: a float for which ``accepts(value)`` holds (NaN never does);
+    ``rule`` says which, e.g. "in [0, 1]"."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+        if not accepts(value):
+            raise argparse.ArgumentTypeError(f"must be {rule}, got {text}")
+        return value
+
+    return parse
+
+
+fraction = number_in(lambda v: 0.0 <= v <= 1.0, "in [0, 1]")
+positive = number_in(lambda v: 0.0 < v < float("inf"), "a finite number > 0")
+
+
+def checkpoint_step(text: str) -> str | int:
+    """An argparse ``type``: ``best``, ``latest`` or a checkpoint step >= 0."""
+    if text in ("best", "latest"):
+        return text
+    try:
+        return int_at_least(0)(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"must be best, latest or a step number >= 0, got {text!r}") from None
+
+
+def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) -> None:
+    """The options every subcommand shares. ``workdir_when``: when the detector run is optional,
+    the help's words for when it is needed (``--workdir`` is required otherwise)."""
+    p.add_argument("--workdir", required=workdir_when is None,
+                   help="a detector training run (train/launch.py --workdir)"
+                   + ("" if workdir_when is None else f"; needed {workdir_when}"))
+    p.add_argument("--step", type=checkpoint_step, default="best",
+                   help="checkpoint: best, latest or a step number")
+    p.add_argument("--num-templates", type=int_at_least(1), default=ONBOARD_TEMPLATES,
+                   help="templates per object: 1024 covers rotations to 22 deg, half the 45 deg "
+                        "between pose hypotheses; 5140 (the paper's bank, 12.8 deg) onboards 5x "
+                        "slower")
+    p.add_argument("--depth-range", type=positive, nargs=2, metavar=("ZMIN", "ZMAX"),
+                   help="distance range of the objects from the camera (mm): pan-and-scan "
+                        "uses the one scale (or the few) that puts their projected diameters "
+                        "(diameter * f / z) at the sizes the detector was trained on; without "
+                        "it, the scales cover objects from 64 px to the whole image. bop: "
+                        "default from the dataset's cell.json when it has one (datagen "
+                        "--layout cell)")
+    p.add_argument("--num-scales", type=int_at_least(1), default=None,
+                   help="pan-and-scan scales (default: the fewest that cover the object sizes: "
+                        "3 for a 640x480 image without --depth-range)")
+    p.add_argument("--score-threshold", type=fraction, default=0.1,
+                   help="keep detections scoring above this, in [0, 1]")
+    p.add_argument("--max-detections", type=int_at_least(1), default=100, help="per image")
+    p.add_argument("--cache-dir", type=pathlib.Path, default=DEFAULT_CACHE,
+                   help="onboarding and compilation cache (env THREEPT_CACHE)")
+    p.add_argument("--out", type=pathlib.Path, required=True, help="output folder")
+    p.add_argument("--overlays", type=int_at_least(0), default=10,
+                   help="overlay PNGs written (0: none)")
+
+
+def refiner_options(p: argparse.ArgumentParser, what: str, required: bool = False) -> None:
+    """``--refiner RUN`` (``what`` it does for the subcommand) and ``--refiner-step``."""
+    p.add_argument("--refiner", type=pathlib.Path, required=required, default=None,
+                   metavar="RUN", help="a 3PT-R training run (train/launch.py --config "
+                                       f"train/configs/refiner.py:tiny): {what}")
+    p.add_argument("--refiner-step", type=checkpoint_step, default="best",
+                   help="refiner checkpoint: best, latest or a step number")
+
+
+def camera_options(p: argparse.ArgumentParser, per: str) -> None:
+    """``--K`` / ``--cameras`` / ``--calibration-size``: the cameras, one per ``per`` (image,
+    view), read by ``cameras_from_args``."""
+    p.add_argument("--K", action="append", metavar="fx,fy,cx,cy",
+                   help=f"intrinsics in pixels, one per {per} (or use --cameras)")
+    p.add_argument("--cameras", type=pathlib.Path,
+                   help=f'JSON list, one per {per}: {{"K": 3x3, "T_cam_world": 4x4 (mm, needed '
+                        'for several views), "calibration_size": [W, H] (optional)}')
+    p.add_argument("--calibration-size", type=int_at_least(1), nargs=2, metavar=("W", "H"),
+                   help=f"image size the intrinsics were calibrated at, when the {per}s are "
+                        "resized: K is rescaled to each image (pixel centres at integers: "
+                        "cx' = (cx + 0.5) * sx - 0.5)")
+
+
+def load_models(args):
+    """The run's models (``infer.load``: the detector of ``--workdir`` and, when the command has
+    one, the refiner of ``--refiner``) with the onboarding and compilation caches."""
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", str(args.cache_dir / "jax"))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    return load(args.workdir, args.step, refiner=getattr(args, "refiner", None),
+                refiner_step=getattr(args, "refiner_step", "best"), cache_dir=args.cache_dir,
+                num_templates=args.num_templates)
+
+
+def detector_options(args) -> dict:
+    return dict(num_scales=args.num_scales, depth_range=args.depth_range,
+                score_threshold=args.score_threshold,
+                max_detections=args.max_detections)
+
+
+def read_rgb(path) -> np.ndarray:
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise FileNotFoundError(f"cannot read image {path}")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def cameras_from_args(args, n: int) -> list[Camera]:
+    """One Camera per image, from --cameras FILE or --K (single view); ValueError names a bad
+    entry."""
+    default_hw = None if args.calibration_size is None else tuple(args.calibration_size[::-1])
+    if args.cameras is not None:
+        path = args.cameras
+        try:
+            cams = json.loads(path.read_text())
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{path} is not valid JSON: {e}") from None
+        if not isinstance(cams, list):
+            raise ValueError(f"{path} must hold a JSON list of cameras, one per image")
+        if len(cams) != n:
+            raise ValueError(f"{path} has {len(cams)} cameras for {n} images (--image)")
+        out = []
+        for i, c in enumerate(cams):
+            where = f"{path} camera {i}"
+            if not isinstance(c, dict) or "K" not in c:
+                raise ValueError(f'{where} has no "K" (3x3 in pixels)')
+            K = validate_intrinsics(c["K"], f"{where} K")
+            T = c.get("T_cam_world")
+            if T is not None:
+                T = validate_rigid(T, f"{where} T_cam_world (world -> camera, mm)")
+            hw = default_hw
+            if c.get("calibration_size") is not None:
+                size = np.ravel(c["calibration_size"])
+                if size.size != 2 or not all(float(v).is_integer() and v > 0 for v in size):
+                    raise ValueError(f'{where} "calibration_size" must be [W, H] in pixels, got '
+                                     f"{c['calibration_size']}")
+                hw = (int(size[1]), int(size[0]))
+            out.append(Camera(K, T_cam_world=T, calibration_hw=hw))
+        return out
+    if not args.K or len(args.K) != n:
+        raise ValueError(f"{len(args.K or ())} --K for {n} --image: give one --K fx,fy,cx,cy "
+                         "per image or --cameras FILE")
+    cameras = []
+    for k in args.K:
+        try:
+            fx, fy, cx, cy = (float(v) for v in k.split(","))
+        except ValueError:
+            raise ValueError(f"--K {k!r} must be four numbers fx,fy,cx,cy (pixels)") from None
+        K = validate_intrinsics([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], f"--K {k}")
+        cameras.append(Camera(K, calibration_hw=default_hw))
+    return cameras
+
+
+def parse_meshes(items: Sequence[str]) -> dict[int, str]:
+    """``--mesh ID=PATH`` (repeated) -> {obj_id: path}; errors name the bad item."""
+    meshes = {}
+    for item in items:
+        key, _, path = item.partition("=")
+        if not key.isdigit() or not path:
+            raise ValueError(f"--mesh {item!r} must be ID=PATH with an integer id")
+        if not pathlib.Path(path).is_file():
+            raise FileNotFoundError(f"--mesh {item}: no mesh file {path}")
+        meshes[int(key)] = path
+    return meshes
