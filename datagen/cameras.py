@@ -1,6 +1,6 @@
 """Camera samplers for synthetic scenes: intrinsics, single views and multi-view rings.
 
-Conventions (DESIGN.md section 3): OpenCV cameras (x right, y down, z forward), K [3, 3] in
+Conventions (docs/design.md section 3): OpenCV cameras (x right, y down, z forward), K [3, 3] in
 pixels mapping to pixel-centre coordinates (the image spans [-0.5, W - 0.5] in u), fx may differ
 from fy, world frame z up with the support plane at z = 0, extrinsics ``T_cam_world`` [4, 4]
 mapping world points (mm) into the camera. Multi-view rigs return one K and one T_cam_world

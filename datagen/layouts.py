@@ -1,8 +1,8 @@
 """Scene layouts for the synthetic data generator: dropped, floating and densely packed objects.
 
-3PT's training images (DESIGN.md section 1; the paper averages ~110 annotated instances per image)
-are mostly objects dropped onto a surface or into a bin, some floating in the air and some
-tightly packed. This module places instances of meshes in a world frame (millimetres, z up, the
+3PT's training images (docs/design.md section 1; the paper averages ~110 annotated instances
+per image) are mostly objects dropped onto a surface or into a bin, some floating in the air and
+some tightly packed. This module places instances of meshes in a world frame (millimetres, z up, the
 support surface at z = 0) and returns their poses ``T_world_obj``:
 
 * ``drop_layout``: a real rigid-body simulation with MuJoCo. Objects spawn above a plane or a bin

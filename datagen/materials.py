@@ -1,8 +1,8 @@
 """Appearance of synthetic scenes: materials, procedural textures, skies and support surfaces.
 
 3PT's detector and refiner are trained on path-traced images whose objects must not be
-recognisable by their colour or texture (the CAD meshes are untextured; DESIGN.md section 1), so
-every instance gets a random material:
+recognisable by their colour or texture (the CAD meshes are untextured; docs/design.md
+section 1), so every instance gets a random material:
 
 * kinds: ``diffuse``, ``plastic`` (rough plastic: diffuse base under a dielectric coat) and
   ``conductor`` (rough metal), the three ``threept_jax.render.mitsuba_backend.Material`` kinds;

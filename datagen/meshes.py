@@ -1,6 +1,6 @@
 """The mesh pool of the data generator: CAD meshes from folders and procedural parts, with ids.
 
-3PT is trained on renders of ~110k meshes (DESIGN.md section 1). The pool gathers them from
+3PT is trained on renders of ~110k meshes (docs/design.md section 1). The pool gathers them from
 
 * BOP ``models/`` folders (``obj_XXXXXX.ply`` + ``models_info.json``, whose diameters and
   symmetries are kept: 3PT's losses are symmetry-aware),

@@ -1,9 +1,9 @@
 """Procedural industrial parts: the project's own, unlimited and licence-free mesh supply.
 
-3PT trains on ~110k meshes (DESIGN.md section 1); public CAD sets are few and small, so the data
-generator can mix in parts built here from random dimensions: L-, T- and U-profiles, plates with
-hole patterns, bent brackets, spur gears (involute flanks), hex bolts and socket screws, hex nuts,
-washers, flanges, pipe elbows and stepped shafts.
+3PT trains on ~110k meshes (docs/design.md section 1); public CAD sets are few and small, so
+the data generator can mix in parts built here from random dimensions: L-, T- and U-profiles,
+plates with hole patterns, bent brackets, spur gears (involute flanks), hex bolts and socket
+screws, hex nuts, washers, flanges, pipe elbows and stepped shafts.
 
 Every part is built with manifold3d (exact, always manifold constructive solid geometry), in
 millimetres, and returned as a ``trimesh.Trimesh`` that is

@@ -1,6 +1,6 @@
 """One synthetic scene: compose (meshes, layout, materials, lights, cameras), render, annotate.
 
-The data generator's unit of work (DESIGN.md sections 1 and 5; the layouts, meshes and cameras
+The data generator's unit of work (docs/design.md sections 1 and 5; the layouts, meshes and cameras
 are in the sibling modules). :func:`generate_scene` builds a scene from a
 ``np.random.Generator`` and writes it as one BOP scene folder with ``BopSceneWriter``:
 

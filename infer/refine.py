@@ -5,8 +5,10 @@ refiner run's face budget, ``RefineSettings.max_faces``) and stacked so that one
 serves every object. A call refines N instances, each with K hypotheses (world frame, best
 first), in V views, through :func:`threept_jax.pipeline.refine_loop.refine_instances`: each
 iteration crops every view around the instance's best hypothesis, renders the active
-hypotheses, runs 3PT-R, matches, solves multi-view PnP and keeps the better-scored half,
-duplicates up to symmetry dropped first. Shapes are padded so that scenes with other counts
+hypotheses, runs 3PT-R, matches, solves multi-view PnP (each update kept only when the
+matches back it) and keeps the better-scored half, duplicates up to symmetry dropped first,
+beside the start carried unrefined; a last look keeps the refined best only when it scores above
+the start. Shapes are padded so that scenes with other counts
 reuse the compiled loop: instances to a bin of :func:`~threept_jax.pipeline.refine_loop.
 pad_to_bin` (masked), hypotheses to ``num_hypotheses`` (repeating the last, a duplicate the
 loop drops), views are the scene's. One compilation per (instance bin, views, image size).

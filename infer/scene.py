@@ -3,7 +3,7 @@
 Single view: every detection is an instance; its pose is the best of its hypotheses (top
 template turned by the box ray, translation fitted to the box).
 
-Multi-view (DESIGN.md section 1, stage 2): detections of each view are matched across views
+Multi-view (docs/design.md section 1.2): detections of each view are matched across views
 along the epipolar rays through their box centres (same object id), triangulated, and kept when
 seen in at least ``min_views`` views. The orientation proposals of every member view (its top
 ``proposals_per_view`` templates, turned by the view's box ray and brought to the world frame)

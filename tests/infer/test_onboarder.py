@@ -17,7 +17,7 @@ from threept_jax.models.detector import Detector
 from threept_jax.pipeline.onboarding import render_bank
 from threept_jax.render import Mesh
 
-#: Object generation keeps the top-K templates at least this far apart (DESIGN.md 2).
+#: Object generation keeps the top-K templates at least this far apart (docs/design.md section 1.2).
 HYPOTHESIS_SEPARATION_DEG = 45.0
 
 

@@ -1,6 +1,6 @@
 """Render banks: the per-object renders 3PT-D's object tower consumes, and the object table.
 
-A :class:`RenderBank` holds, for one object (DESIGN.md section 1.1):
+A :class:`RenderBank` holds, for one object (docs/design.md section 1.1):
 
 ===================  ====================  ==================================================
 field                dtype, shape          meaning

@@ -16,7 +16,7 @@ from threept_jax.geometry.camera import transform
 Array = jax.Array
 
 #: The scale prior: object sizes (longer side of the amodal box, pixels) that detector training
-#: puts objects at on a ``SCALE_REFERENCE_TILE`` tile (DESIGN.md section 1.1); a tile of side t
+#: puts objects at on a ``SCALE_REFERENCE_TILE`` tile (docs/design.md section 1.1); a tile of side t
 #: scales it by t / ``SCALE_REFERENCE_TILE`` (:func:`size_prior`). Training crops its tiles to
 #: it (``data/detector_input.py``); pan-and-scan chooses its scales to map objects into it.
 SCALE_PRIOR = (128.0, 350.0)

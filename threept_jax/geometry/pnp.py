@@ -1,6 +1,6 @@
 """Multi-view Perspective-n-Point: robust Levenberg-Marquardt on SE(3) over all views at once.
 
-3PT's refiner (DESIGN.md section 1, stage 3) turns 2D-3D correspondences from every view (render
+3PT's refiner (docs/design.md section 1.3) turns 2D-3D correspondences from every view (render
 pixels with known object coordinates matched to real pixels) into one pose update of the object
 in the world frame. :func:`solve_pnp` does that: it minimises the robust reprojection error of
 all correspondences in all calibrated views jointly,
@@ -33,7 +33,7 @@ Design choices (all branch-free, so the solver is jit-able and vmap-able over pr
   a few iteratively reweighted (Cauchy) solves; the candidate with the lowest robust
   multi-view cost is lifted to the world frame and refined by LM.
 
-Conventions: millimetres, OpenCV cameras (DESIGN.md section 3), ``K`` with pixel-centre
+Conventions: millimetres, OpenCV cameras (docs/design.md section 3), ``K`` with pixel-centre
 coordinates (``threept_jax.geometry.camera``). Shapes: V views, N correspondences per view
 (pad with weight 0).
 """

@@ -1,6 +1,6 @@
 """Rotation parameterisations and distances on SO(3).
 
-Rotations are 3x3 matrices at every API boundary (DESIGN.md section 3); quaternions are
+Rotations are 3x3 matrices at every API boundary (docs/design.md section 3); quaternions are
 (w, x, y, z) with w >= 0 on output. All functions are batched over leading axes, jit-able and
 accept NumPy or JAX arrays.
 """

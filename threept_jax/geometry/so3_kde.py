@@ -1,6 +1,6 @@
 """Kernel density estimation on SO(3) with an isotropic von Mises-Fisher kernel.
 
-3PT's multi-view object generation (DESIGN.md section 1, stage 2) fuses the orientation
+3PT's multi-view object generation (docs/design.md section 1.2) fuses the orientation
 proposals of several views (the top 500 templates of each view, weighted by their scores) with
 a kernel density estimate on SO(3), re-weights the proposals by that density and keeps the top
 K rotations at a minimum angular separation. This module provides the two pieces:
@@ -144,7 +144,7 @@ def top_k_separated(
     padding, pass -inf scores or a threshold) are never selected. Slots after the last kept
     rotation have ``valid=False`` and index 0. Time O(k N), memory O(N); jit-able with static
     ``k``. This is the "top K hypotheses at least 45 degrees apart" step of 3PT's object
-    generation (DESIGN.md section 1, stage 2).
+    generation (docs/design.md section 1.2).
     """
     rotations = jnp.asarray(rotations, jnp.float32)
     scores = jnp.asarray(scores, jnp.float32)

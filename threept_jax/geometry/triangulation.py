@@ -1,6 +1,6 @@
 """Multi-view triangulation and cross-view matching of detections.
 
-3PT's multi-view object generation (DESIGN.md section 1, stage 2) matches detections across
+3PT's multi-view object generation (docs/design.md section 1.2) matches detections across
 calibrated views along the epipolar rays through their box centres, triangulates each match and
 keeps the objects seen in at least 3 views. This module provides
 

@@ -1,9 +1,9 @@
 """3PT-D training losses: presence, boxes, contrastive orientation, soft-scaled matching.
 
-The third loss layer (STYLE.md habit 5): :func:`detection_loss` builds the cost matrix
+The third loss layer (docs/design.md habit 5): :func:`detection_loss` builds the cost matrix
 (:func:`~threept_jax.losses.matcher.detection_cost`), matches hypotheses to targets on the
 host (:func:`~threept_jax.losses.matcher.hungarian_match`) and assembles, for a batch of tiles
-each queried with one object (DESIGN.md section 1.1, "Training"):
+each queried with one object (docs/design.md section 1.1, "Training"):
 
 * **Presence** (every hypothesis): sigmoid focal loss, positive for matched hypotheses.
   **Soft-scaled matching**: an unmatched hypothesis p with ``u_p = max_g IoU(box_p, gt_g)``

@@ -1,6 +1,6 @@
 """Cost matrix and Hungarian matching of hypotheses to ground-truth instances.
 
-The first two of the three loss layers (STYLE.md habit 5, after scenic's
+The first two of the three loss layers (docs/design.md habit 5, after scenic's
 ``owl_vit/losses.compute_cost`` and ``matchers/common.cpu_matcher``):
 
 1. :func:`detection_cost` (pure jnp): DETR's matching cost, ``w_class * focal cost +

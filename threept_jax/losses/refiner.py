@@ -1,5 +1,5 @@
 """3PT-R training losses: dense matching (the paper's eq. (1)), hypothesis classification,
-visible-mask segmentation (DESIGN.md section 1.3, "Training").
+visible-mask segmentation (docs/design.md section 1.3, "Training").
 
 One function per term, each returning ``(loss, metrics)`` (a float32 scalar and a dict of
 float32 scalars); the caller weights and sums the terms. All are pure ``jnp``, jit- and

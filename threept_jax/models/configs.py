@@ -5,7 +5,8 @@ with the size looked up in :data:`VIT_SIZES`. ``"tiny"`` (width 64, depth 2) exi
 and the pipeline check, ``"mini"`` (width 128, depth 4) for what 2 CPU cores train in an hour;
 their patch size defaults to 16 and may be given (``"tiny/8"``).
 
-Shapes use the letter legend of DESIGN.md: B batch, O objects, P patches, T templates, D width.
+Shapes use the letter legend of docs/design.md section 3: B batch, O objects, P patches,
+T templates, D width.
 """
 
 from __future__ import annotations
@@ -170,7 +171,7 @@ class _VariantSizes:
 
 @dataclasses.dataclass(frozen=True)
 class DetectorConfig(_VariantSizes):
-    """3PT-D, the early-fusion two-tower detector (DESIGN.md section 1.1).
+    """3PT-D, the early-fusion two-tower detector (docs/design.md section 1.1).
 
     Attributes:
       variant: ViT size and patch, parsed by :func:`decode_variant` (``"tiny"``, ``"S/16"``,
@@ -281,7 +282,7 @@ class DetectorConfig(_VariantSizes):
 
 @dataclasses.dataclass(frozen=True)
 class RefinerConfig(_VariantSizes):
-    """3PT-R, the render-and-compare refiner network (DESIGN.md section 1.3, paper section 3.3).
+    """3PT-R, the render-and-compare refiner network (docs/design.md section 1.3, paper 3.3).
 
     Attributes:
       variant: ViT size and patch, parsed by :func:`decode_variant` (``"tiny/16"``, ``"S/14"``,

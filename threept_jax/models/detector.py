@@ -1,4 +1,4 @@
-"""3PT-D: the early-fusion CAD-conditioned detector (DESIGN.md section 1.1).
+"""3PT-D: the early-fusion CAD-conditioned detector (docs/design.md section 1.1).
 
 Separately callable (and separately jit-able) stages:
 
@@ -9,7 +9,8 @@ Separately callable (and separately jit-able) stages:
    and cached.
 2. ``embed_templates(template_renders [O, T, h, w, 3]) -> template_bank [O, T, E]``: one unit
    vector per template rotation (attention pooling with one probe, projection to E,
-   L2 normalisation). Computed once per object (T = 5140 at inference) and cached.
+   L2 normalisation). Computed once per object (T = 1024 by default at inference, the
+   paper's 5140 on request) and cached.
 3. ``detect(image_tiles [B, H, W, 3], prior_tokens [B, Np, D])``: the prior tokens, tagged
    with a learned per-slot embedding, are concatenated to the tile's patch tokens and the
    image tower attends over all of them (early fusion). Every output patch token is an object

@@ -1,4 +1,4 @@
-"""3PT-R: the render-and-compare refiner network (paper section 3.3, DESIGN.md section 1.3).
+"""3PT-R: the render-and-compare refiner network (paper section 3.3, docs/design.md section 1.3).
 
 Per object instance: V real crops and K x V renders of the CAD model (one per hypothesis and
 view, drawn into the same crops). The network:

@@ -4,7 +4,7 @@ A pre-LayerNorm encoder without class token, in the manner of big_vision's ``vit
 come from a table parsed from strings such as ``"B/16"`` (:mod:`threept_jax.models.configs`),
 optional register tokens (Darcet et al. 2024), learned position embeddings resized bilinearly
 to any patch grid or fixed 2-D sin-cos ones, and attention that accepts extra tokens: 3PT-D
-concatenates the object's prior tokens to the image patch tokens (early fusion, DESIGN.md
+concatenates the object's prior tokens to the image patch tokens (early fusion, docs/design.md
 section 1.1) and every token attends to every other. Optional LayerScale (DINOv2; off by
 default, so the detector's parameters and numerics are those of the plain block), intermediate
 block outputs for dense heads, and a CroCo cross-attention block for the refiner (3PT-R).

@@ -1,6 +1,6 @@
 """Object generation (3PT stage 2): detections -> objects with K pose hypotheses.
 
-Single view (DESIGN.md section 1, stage 2): the depth of a detected object follows from the ratio
+Single view (docs/design.md section 1.2): the depth of a detected object follows from the ratio
 of its box size to the CAD model's projected size, x and y from back-projecting the box centre at
 that depth, and the rotations are the detector's top-K templates at least 45 degrees apart.
 

@@ -1,6 +1,6 @@
 """Object onboarding renders: an object's views at given rotations with the bank camera.
 
-3PT-D's object tower (DESIGN.md section 1.1) consumes, per object, 12 prior renders and a bank
+3PT-D's object tower (docs/design.md section 1.1) consumes, per object, 12 prior renders and a bank
 of templates at rotations covering SO(3). Training (``datagen``) and inference onboarding both
 render them with :func:`render_object_views`, so the two see identical images.
 

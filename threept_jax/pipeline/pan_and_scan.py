@@ -1,7 +1,7 @@
 """Pan-and-scan: overlapping square tiles at several scales, box back-mapping and merging NMS.
 
 3PT-D sees fixed-size tiles (512 x 512 in the paper) in which training put objects at 128-350
-px (DESIGN.md section 1.1; the scale prior of ``threept_jax/geometry/framing.py``, scaled with
+px (docs/design.md section 1.1; the scale prior of ``threept_jax/geometry/framing.py``, scaled with
 the tile). A full image is resized by each scale s, cut into overlapping tiles, each tile is
 queried with each object, and the detections are mapped back to the full image and merged by
 NMS across tiles, scales and (optionally) objects.

@@ -1,4 +1,4 @@
-"""The refinement step of 3PT-R, shared by training and inference (DESIGN.md section 1, stage 3).
+"""The refinement step of 3PT-R, shared by training and inference (docs/design.md section 1.3).
 
 One render-and-compare iteration for one object instance seen in V calibrated views, with K pose
 hypotheses (issue 14, section 3)::

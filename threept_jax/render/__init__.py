@@ -1,4 +1,4 @@
-"""Rendering: one interface, two backends (a JAX rasterizer and Mitsuba 3). DESIGN.md section 4.
+"""Rendering: one interface, two backends (a JAX rasterizer, Mitsuba 3). docs/design.md section 4.
 
 ``render(mesh, T_cam_obj [..., 4, 4], K [..., 3, 3], hw=(H, W), outputs=(...), backend="jax")``
 returns a dict of arrays [..., H, W, ...]:

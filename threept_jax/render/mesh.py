@@ -1,10 +1,11 @@
 """CAD meshes: loading, unit checks, preparation for the rasterizer, padding to size buckets.
 
-A :class:`Mesh` is a frozen, host-side (NumPy) triangle mesh in millimetres (DESIGN.md section
-3): vertices, faces, unit vertex normals, and optionally vertex colours or UV coordinates with a
-texture image, plus the BOP symmetries when ``models_info.json`` provides them.
+A :class:`Mesh` is a frozen, host-side (NumPy) triangle mesh in millimetres (docs/design.md
+section 3): vertices, faces, unit vertex normals, and optionally vertex colours or UV
+coordinates with a texture image, plus the BOP symmetries when ``models_info.json`` provides
+them.
 
-Preparation for the JAX rasterizer (DESIGN.md section 4) bounds the work per triangle:
+Preparation for the JAX rasterizer (docs/design.md section 4) bounds the work per triangle:
 
 * :func:`decimate` reduces the face count to a budget (quadric edge collapse, fast-simplification)
   and carries colours and UVs over to the simplified surface;

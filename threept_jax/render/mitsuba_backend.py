@@ -1,6 +1,6 @@
 """Mitsuba 3 backend: exact ray-cast geometry outputs and a path-traced scene builder.
 
-DESIGN.md section 4. Two parts:
+docs/design.md section 4. Two parts:
 
 * :class:`MitsubaRenderer` renders one mesh, kept fixed in its object frame, for many views:
   the same outputs as the JAX rasterizer (``depth``, ``mask``, ``xyz``, ``normal``, ``rgb``,

@@ -1,6 +1,6 @@
 """A pure-JAX triangle rasterizer: visibility buffer with tile work lists and one scatter-min.
 
-DESIGN.md section 4. Runs under ``jit`` and ``vmap`` on CPU, GPU and TPU, with no host
+docs/design.md section 4. Runs under ``jit`` and ``vmap`` on CPU, GPU and TPU, with no host
 callbacks. The algorithm:
 
 1. **Triangle setup** ``[B, F]``. For the ray ``d = K^-1 (u, v, 1)`` through pixel ``(u, v)``

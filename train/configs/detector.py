@@ -17,7 +17,7 @@ shards, ``objects.json`` and ``banks/``, written by ``python -m datagen.pack``).
   ``--minutes``.
 * ``small``: one GPU in under an hour: S/16 on 512 px tiles, 112 px renders, batch 64,
   64 templates per example, 20k steps.
-* ``paper``: the paper's sizes and data scale (DESIGN.md section 1.1): B/16 on 512 px tiles,
+* ``paper``: the paper's sizes and data scale (docs/design.md section 1.1): B/16 on 512 px tiles,
   224 px renders, the 5140-template bank (128 sampled per example in a step, the whole bank
   at evaluation), global batch 4096 over many hosts with FSDP, 250k steps (~1B image-render
   pairs: 4096 tiles x 250k steps, each with 12 prior + 128 template renders).
