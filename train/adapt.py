@@ -25,12 +25,15 @@ that with our own data engine, in stages that each resume when the command is ru
    default 0 trains no refiner and tests object generation alone): a 3PT-R run of
    ``--refiner-config`` (``train/configs/refiner.py``) from scratch on the same records ->
    ``W/refiner``, an ordinary refiner run (``python -m infer bop --refiner W/refiner``); its
-   best checkpoint by the held-out MSSD recall after refinement on the val records.
+   best checkpoint by the held-out MSSD recall after refinement on the val records. Its
+   held-out figures (:func:`refiner_heldout`: rotation error and MSSD recall before and after
+   its steps, score accuracy) are printed and reported; a refiner whose steps lower the
+   held-out recall is not used for the test (:func:`refiner_helps`).
 6. **Test**: the best detector checkpoint (by full-image AP50 on the val scenes) runs ``python
    -m infer bop`` on the val scenes, whose best-F1 score becomes the overlay threshold, then on
    the test scenes: full images, every part queried, the best detections of an image whatever
    their score (as many as a scene holds instances at most, :func:`max_detections`), refined
-   by ``W/refiner`` when one was trained. Box AP / AP50 (COCO, BOP ignore rule), segmentation
+   by ``W/refiner`` when one was trained and helps. Box AP / AP50 (COCO, BOP ignore rule), segmentation
    AP and BOP 6D AP and AP-mm -> ``W/report.json`` (:func:`figures`: with a refiner, before
    and after refinement); overlays (boxes and pose contours, refined when refining, at least
    640 px wide) under ``W/test/overlays``.
@@ -231,7 +234,7 @@ def measure_step_seconds(config) -> float:
     of its trainer in a temp folder."""
     import jax
 
-    from train.trainer import trainer_class
+    from train.trainers import trainer_class
 
     probe = config.copy_and_resolve_references()
     probe.eval.every_steps = 0
@@ -286,7 +289,7 @@ def train(config, steps: int, workdir: pathlib.Path) -> None:
     """Train ``config``'s model to ``steps`` in ``workdir`` (resuming; nothing to do when its
     last checkpoint is at ``steps``)."""
     from threept_jax.data.run_dir import RunDir
-    from train.trainer import trainer_class
+    from train.trainers import trainer_class
 
     done = RunDir(workdir, model=config.trainer).checkpoint_steps()
     if done and done[-1] >= steps:
@@ -387,6 +390,14 @@ def refiner_heldout(refiner: pathlib.Path) -> dict:
     return {k.removeprefix("eval/"): v for k, v in evaluate_run(refiner).items()}
 
 
+def refiner_helps(h: dict) -> bool:
+    """Whether the refiner's held-out figures (:func:`refiner_heldout`) allow using it: its
+    steps must not lower the MSSD recall of the poses they start from. A refiner that makes
+    held-out poses worse is not used for the test (the report says so): it would lose every
+    user of it accuracy."""
+    return h["ar_mssd_after"] >= h["ar_mssd_before"]
+
+
 def refiner_lines(h: dict) -> list[str]:
     """:func:`refiner_heldout`'s figures as printed lines: rotation error and MSSD AR before and
     after the refiner's steps, and how often its score picks the best hypothesis (none
@@ -426,6 +437,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     w = args.workdir
     data, records, cache = w / "data", w / "records", w / "cache"
     refiner = w / "refiner" if args.refiner_minutes > 0 else None
+    use_refiner = refiner
     n = 6 if refiner else 5
     minutes: dict[str, float] = {}
 
@@ -461,18 +473,24 @@ def main(argv: Sequence[str] | None = None) -> dict:
         heldout = refiner_heldout(refiner)
         for line in refiner_lines(heldout):
             print(f"   {line}")
+        if not refiner_helps(heldout):
+            print("   the refiner makes held-out poses worse: the test runs without it (object "
+                  "generation alone); train it longer (--refiner-minutes) or on more parts",
+                  flush=True)
+            use_refiner = None
     elif "refiner" in budget:
         print(f"   note: --refiner-minutes 0: the refiner planned in {w / 'adapt.json'} is "
               "neither trained nor used")
 
     start = _stage(f"{n}/{n} full-image test on new scenes -> {w / 'test'}"
-                   + (f", refined by {refiner}" if refiner else ""))
-    report = test(w, data, w, cache, args.overlays, args.instances, refiner=refiner)
+                   + (f", refined by {use_refiner}" if use_refiner else ""))
+    report = test(w, data, w, cache, args.overlays, args.instances, refiner=use_refiner)
     minutes["test"] = _done(start) / 60
     report.update(steps=steps, config=configs["detector"].model.variant, minutes=minutes)
     if refiner:
         report.update(refiner_steps=budget["refiner"]["steps"],
-                      refiner_config=configs["refiner"].model.variant, refiner_heldout=heldout)
+                      refiner_config=configs["refiner"].model.variant, refiner_heldout=heldout,
+                      refiner_trained=str(refiner))
     (w / "report.json").write_text(json.dumps(report, indent=1, default=float))
     figs = report["test"]
     print("\nadapted detector, test scenes (full images, all parts queried): box AP50 "

@@ -141,7 +141,7 @@ STEP_SECONDS = {"detector": 0.2, "refiner": 0.5}
 def test_measure_step_seconds_times_the_configs_trainer(monkeypatch):
     """The probe runs the trainer of ``config.trainer`` on a copy of the config without
     evaluations and times TIMED_STEPS steps after 3 untimed ones."""
-    import train.trainer_refiner
+    import train.trainers
     from train.configs.refiner import get_config
 
     seen = []
@@ -161,7 +161,7 @@ def test_measure_step_seconds_times_the_configs_trainer(monkeypatch):
         def close(self):
             seen.append(self.steps)
 
-    monkeypatch.setattr(train.trainer_refiner, "RefinerTrainer", Probe)
+    monkeypatch.setattr(train.trainers, "RefinerTrainer", Probe)
     config = get_config("tiny")
     config.init_from = "/elsewhere"
     assert adapt.measure_step_seconds(config) > 0
@@ -207,9 +207,10 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
     assert refiner_run.read_config()["data_dir"] == str((w / "records").resolve())
     assert load_refiner(w / "refiner")[1].variant == "tiny/16"
 
+    refined = adapt.refiner_helps(report["refiner_heldout"])  # with the refiner, before/after
     assert set(report["test"]) == {"box_ap", "box_ap50", "box_f1", "box_f1_threshold",
                                    *adapt.POSE_FIGURES,
-                                   *(f"{k}_initial" for k in adapt.POSE_FIGURES)}
+                                   *(f"{k}_initial" for k in adapt.POSE_FIGURES if refined)}
     assert set(report["val"]) == {"box_ap", "box_ap50", "box_f1", "box_f1_threshold",
                                   *adapt.POSE_FIGURES}
     for value in (*report["test"].values(), *report["val"].values()):
@@ -218,9 +219,12 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
     saved = json.loads((w / "report.json").read_text())
     assert saved["steps"] == budget["detector"]["steps"]
     assert saved["refiner_steps"] == budget["refiner"]["steps"]
-    assert saved["refiner"] == str(w / "refiner")
-    # The refiner's held-out figures (train.eval_refiner on its val records) beside the AP.
+    # The refiner's held-out figures (train.eval_refiner on its val records) beside the AP; the
+    # test uses the refiner only when they say it does not make poses worse.
     held = saved["refiner_heldout"]
+    helps = held["ar_mssd_after"] >= held["ar_mssd_before"]
+    assert saved["refiner"] == (str(w / "refiner") if helps else None) and helps == refined
+    assert saved["refiner_trained"] == str(w / "refiner")
     assert held["num_instances"] > 0 and held["step"] in refiner_run.checkpoint_steps()
     assert 0.0 <= held["ar_mssd_before"] <= 1.0 and 0.0 <= held["score_acc"] <= 1.0
     assert held["rot_deg_before"] > 0.0
@@ -236,3 +240,10 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
     assert {p: p.stat().st_mtime for p in (w / "refiner").rglob("*") if p.is_file()} \
         == checkpoints
     assert again["test"] == report["test"]
+
+
+def test_a_refiner_that_lowers_held_out_recall_is_not_used():
+    """refiner_helps: the MSSD recall after the refiner's steps against before, by hand."""
+    assert adapt.refiner_helps({"ar_mssd_before": 0.49, "ar_mssd_after": 0.49})
+    assert adapt.refiner_helps({"ar_mssd_before": 0.30, "ar_mssd_after": 0.52})
+    assert not adapt.refiner_helps({"ar_mssd_before": 0.49, "ar_mssd_after": 0.305})
