@@ -105,6 +105,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     lines = [*summary("adapted (trained on these 5 parts)", adapted["test"]),
              *(f"    {line}" for line in refiner_lines(adapted.get("refiner_heldout") or {})),
+             *(["    the refiner is not used: it makes held-out poses worse"]
+               if adapted.get("refiner_trained") and adapted["refiner"] is None else []),
              *summary("zero-shot (5 parts never seen)", unseen["test"])]
     print(f"\ndone in {report['minutes']:.1f} min. Full images, all parts queried, new scenes:\n"
           + "\n".join(f"  {line}" for line in lines)
