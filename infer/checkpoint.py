@@ -8,6 +8,9 @@ parameters alone, on the default device, without the optimizer state or the data
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Mapping
+
 from threept_jax.data.run_dir import RunDir
 from threept_jax.models.configs import DetectorConfig, RefinerConfig
 from threept_jax.models.detector import Detector
@@ -35,14 +38,36 @@ def load_detector(workdir, step: int | str = "best", dtype: str | None = None
     return RunDir(workdir).load_model(step, dtype)
 
 
+class RefinerWarning(UserWarning):
+    """A refiner checkpoint whose own held-out evaluation says it makes poses worse."""
+
+
+def heldout_check(metrics: Mapping[str, float]) -> str | None:
+    """What is wrong with a refiner checkpoint by the held-out metrics saved with it
+    (``train.eval_refiner``): its steps lower the MSSD recall of the poses they start from.
+    None when they do not, or when the checkpoint has no such metrics."""
+    before, after = metrics.get("eval/ar_mssd_before"), metrics.get("eval/ar_mssd_after")
+    if before is None or after is None or after >= before:
+        return None
+    return (f"on its held-out evaluation this refiner makes poses worse (MSSD recall "
+            f"{before:.3f} before its steps, {after:.3f} after): refined poses may be less "
+            "accurate than the ones given; train it longer or on more parts, or run without "
+            "--refiner")
+
+
 def load_refiner(workdir, step: int | str = "best", dtype: str | None = None
                  ) -> tuple[Refiner, RefinerConfig, int, RefineSettings]:
     """Refiner with trained parameters from a refiner ``workdir`` (``train/configs/refiner.py``).
 
     ``step`` and ``dtype`` as :func:`load_detector` (``"best"``: held-out MSSD recall after
     refinement by default). Returns (model, config, step, the run's ``RefineSettings``: the
-    refinement step is run at inference with the options it was trained with).
+    refinement step is run at inference with the options it was trained with). Warns
+    (:class:`RefinerWarning`) when the checkpoint's held-out metrics say it makes poses worse
+    (:func:`heldout_check`).
     """
     run = RunDir(workdir, model="refiner")
     model, cfg, step = run.load_model(step, dtype)
+    problem = heldout_check(run.saved_metrics(step))
+    if problem:
+        warnings.warn(f"{workdir} step {step}: {problem}", RefinerWarning, stacklevel=2)
     return model, cfg, step, RefineSettings(**run.read_config().get("refine", {}))
