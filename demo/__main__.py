@@ -66,7 +66,7 @@ def summary(name: str, figs: dict) -> list[str]:
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    from train.adapt import CONFIGS, log_friendly_progress
+    from train.stages import CONFIGS, log_friendly_progress
 
     log_friendly_progress()
 

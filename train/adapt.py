@@ -47,39 +47,20 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import pathlib
-import sys
-import tempfile
-import time
 from collections.abc import Sequence
 
-#: Share of each training budget kept for the periodic evaluations and checkpoints of the run.
-EVAL_SHARE = 0.15
+from train.stages import (
+    CONFIGS,
+    EVAL_SHARE,
+    done,
+    log_friendly_progress,
+    measure_step_seconds,
+    stage,
+)
+
 #: Evaluations and checkpoints over a run.
 NUM_EVALS = 4
-#: Steps timed for the budget (after one compiling step and two warm-up steps).
-TIMED_STEPS = 8
-CONFIGS = ("tiny", "cpu", "small", "paper")
-
-
-def log_friendly_progress() -> None:
-    """Progress bars written to a file rather than a terminal (a CI or ``make demo > log``)
-    redraw every 30 s instead of 10 times a second: a readable log, not megabytes of
-    carriage returns. tqdm reads ``TQDM_MININTERVAL`` when it is imported, so call this first."""
-    if not sys.stderr.isatty():
-        os.environ.setdefault("TQDM_MININTERVAL", "30")
-
-
-def _stage(text: str) -> float:
-    print(f"\n== {text}", flush=True)
-    return time.perf_counter()
-
-
-def _done(start: float) -> float:
-    seconds = time.perf_counter() - start
-    print(f"   ({seconds:.0f} s)", flush=True)
-    return seconds
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -227,28 +208,6 @@ def refiner_config(args, records: pathlib.Path):
     config.data_dir = str(records.resolve())
     config.progress_bar = True
     return config
-
-
-def measure_step_seconds(config) -> float:
-    """Warm seconds per train step of ``config`` (detector or refiner) here: a throw-away run
-    of its trainer in a temp folder."""
-    import jax
-
-    from train.trainers import trainer_class
-
-    probe = config.copy_and_resolve_references()
-    probe.eval.every_steps = 0
-    probe.init_from = ""
-    with tempfile.TemporaryDirectory() as tmp:
-        trainer = trainer_class(probe)(probe, tmp)
-        try:
-            for i in range(3 + TIMED_STEPS):
-                if i == 3:
-                    start = time.perf_counter()
-                jax.block_until_ready(trainer.train_step(trainer.next_batch()))
-            return (time.perf_counter() - start) / TIMED_STEPS
-        finally:
-            trainer.close()
 
 
 def plan(args, configs: dict, workdir: pathlib.Path) -> dict:
@@ -441,35 +400,35 @@ def main(argv: Sequence[str] | None = None) -> dict:
     n = 6 if refiner else 5
     minutes: dict[str, float] = {}
 
-    start = _stage(f"1/{n} scenes of {' '.join(args.meshes)} -> {data}")
+    start = stage(f"1/{n} scenes of {' '.join(args.meshes)} -> {data}")
     generate(args, data)
-    minutes["scenes"] = _done(start) / 60
+    minutes["scenes"] = done(start) / 60
 
     configs = {"detector": base_config(args, records)}
     if refiner:
         configs["refiner"] = refiner_config(args, records)
-    start = _stage(f"2/{n} records and render banks -> {records}")
+    start = stage(f"2/{n} records and render banks -> {records}")
     pack(data, records, int(configs["detector"].model.render_size))
-    minutes["records"] = _done(start) / 60
+    minutes["records"] = done(start) / 60
 
     budgets = ", ".join(f"the {c.model.variant} {name} in {m:g} minutes" for name, c, m in (
         ("detector", configs["detector"], args.minutes),
         ("refiner", configs.get("refiner"), args.refiner_minutes)) if c is not None)
-    start = _stage(f"3/{n} budget: steps of {budgets}")
+    start = stage(f"3/{n} budget: steps of {budgets}")
     budget = plan(args, configs, w)
-    minutes["budget"] = _done(start) / 60
+    minutes["budget"] = done(start) / 60
 
     steps = budget["detector"]["steps"]
-    start = _stage(f"4/{n} detector training ({steps} steps, "
+    start = stage(f"4/{n} detector training ({steps} steps, "
                    f"{'from ' + str(args.init_from) if args.init_from else 'from scratch'}) -> {w}")
     train(configs["detector"], steps, w)
-    minutes["training"] = _done(start) / 60
+    minutes["training"] = done(start) / 60
 
     if refiner:
-        start = _stage(f"5/{n} refiner training ({budget['refiner']['steps']} steps, from "
+        start = stage(f"5/{n} refiner training ({budget['refiner']['steps']} steps, from "
                        f"scratch) -> {refiner}")
         train(configs["refiner"], budget["refiner"]["steps"], refiner)
-        minutes["refiner_training"] = _done(start) / 60
+        minutes["refiner_training"] = done(start) / 60
         heldout = refiner_heldout(refiner)
         for line in refiner_lines(heldout):
             print(f"   {line}")
@@ -482,10 +441,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
         print(f"   note: --refiner-minutes 0: the refiner planned in {w / 'adapt.json'} is "
               "neither trained nor used")
 
-    start = _stage(f"{n}/{n} full-image test on new scenes -> {w / 'test'}"
+    start = stage(f"{n}/{n} full-image test on new scenes -> {w / 'test'}"
                    + (f", refined by {use_refiner}" if use_refiner else ""))
     report = test(w, data, w, cache, args.overlays, args.instances, refiner=use_refiner)
-    minutes["test"] = _done(start) / 60
+    minutes["test"] = done(start) / 60
     report.update(steps=steps, config=configs["detector"].model.variant, minutes=minutes)
     if refiner:
         report.update(refiner_steps=budget["refiner"]["steps"],

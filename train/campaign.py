@@ -44,7 +44,7 @@ import sys
 import time
 from collections.abc import Sequence
 
-from train import adapt
+from train import stages
 
 #: Scene layouts of the data, with the images per scene of each (a cell: one per pile).
 LAYOUTS = {"cell": 1, "mixed": 4}
@@ -67,7 +67,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                         "sessions); fixed on the first run")
     p.add_argument("--workdir", type=pathlib.Path, required=True,
                    help="campaign folder: data/, records/, detector/, refiner/, campaign.json")
-    p.add_argument("--config", default="tiny", choices=adapt.CONFIGS,
+    p.add_argument("--config", default="tiny", choices=stages.CONFIGS,
                    help="train/configs/<model>.py config")
     p.add_argument("--parts", type=int, default=300, help="procedural parts")
     p.add_argument("--heldout", type=float, default=0.1,
@@ -186,8 +186,8 @@ def plan_steps(args, plan: dict, config) -> dict:
                   f"{entry['hours']:g} hours; --config {args.config} --hours {args.hours:g} "
                   "are ignored so that the run keeps its schedule", flush=True)
         return entry
-    step_s = adapt.measure_step_seconds(config)
-    steps = max(NUM_EVALS, int(args.hours * 3600 * (1 - adapt.EVAL_SHARE) / step_s))
+    step_s = stages.measure_step_seconds(config)
+    steps = max(NUM_EVALS, int(args.hours * 3600 * (1 - stages.EVAL_SHARE) / step_s))
     entry = {"steps": steps, "step_seconds": step_s, "hours": args.hours, "config": args.config}
     print(f"   {step_s:.3f} s per step of batch {config.batch_size}: {steps} steps in "
           f"{args.hours:g} hours", flush=True)
@@ -213,39 +213,39 @@ def train(config, entry: dict, workdir: pathlib.Path) -> dict | None:
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    adapt.log_friendly_progress()
+    stages.log_friendly_progress()
     args = parse_args(argv)
     plan = read_plan(args)
     write_plan(args, plan)
     w = args.workdir
 
-    start = adapt._stage(f"1/4 data: {args.parts} procedural parts ({args.heldout:g} held out), "
+    start = stages.stage(f"1/4 data: {args.parts} procedural parts ({args.heldout:g} held out), "
                          f"{args.train_images} training images -> {w / 'data'}")
     folders = generate(args, w / "data")
-    adapt._done(start)
+    stages.done(start)
 
     from train.configs.detector import get_config as detector_config
 
     config = model_config(args, w / "records")
-    start = adapt._stage(f"2/4 records -> {w / 'records'}")
+    start = stages.stage(f"2/4 records -> {w / 'records'}")
     # The render banks serve the detector of the same --config, whichever model runs first.
     pack(folders, w / "records", int(detector_config(args.config).model.render_size))
-    adapt._done(start)
+    stages.done(start)
 
-    start = adapt._stage(f"3/4 plan: the {args.config} {args.model} in {args.hours:g} hours")
+    start = stages.stage(f"3/4 plan: the {args.config} {args.model} in {args.hours:g} hours")
     plan[args.model] = plan_steps(args, plan, config)
     write_plan(args, plan)
-    adapt._done(start)
+    stages.done(start)
 
     entry = plan[args.model]
-    start = adapt._stage(f"4/4 {args.model} training ({entry['steps']} steps) -> {w / args.model}")
+    start = stages.stage(f"4/4 {args.model} training ({entry['steps']} steps) -> {w / args.model}")
     # Ctrl-C while training stops like SIGTERM: the trainer saves the step it reached.
     previous = signal.signal(signal.SIGINT, lambda *_: os.kill(os.getpid(), signal.SIGTERM))
     try:
         summary = train(config, entry, w / args.model)
     finally:
         signal.signal(signal.SIGINT, previous)
-    seconds = adapt._done(start)
+    seconds = stages.done(start)
     if summary and summary.get("preempted") is not None:
         print(f"stopped at step {summary['preempted']} (saved); run the same command to go on",
               flush=True)

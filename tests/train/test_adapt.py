@@ -11,7 +11,7 @@ from infer.checkpoint import load_detector, load_refiner
 from infer.refine import SceneRefiner
 from threept_jax.data.run_dir import RunDir
 from threept_jax.pipeline.refine_loop import LoopSettings
-from train import adapt
+from train import adapt, stages
 
 
 def test_bad_arguments_exit_2_naming_the_flag(tmp_path, capsys):
@@ -165,7 +165,7 @@ def test_measure_step_seconds_times_the_configs_trainer(monkeypatch):
     config = get_config("tiny")
     config.init_from = "/elsewhere"
     assert adapt.measure_step_seconds(config) > 0
-    assert seen == [(0, ""), 3 + adapt.TIMED_STEPS]
+    assert seen == [(0, ""), 3 + stages.TIMED_STEPS]
     assert config.eval.every_steps == 200 and config.init_from == "/elsewhere"  # a copy
 
 

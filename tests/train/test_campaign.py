@@ -36,7 +36,7 @@ def test_share_splits_a_total():
 
 
 def test_campaign_holds_parts_out_trains_resumes_and_keeps_its_data(tmp_path, monkeypatch):
-    monkeypatch.setattr(campaign.adapt, "measure_step_seconds", lambda config: STEP_SECONDS)
+    monkeypatch.setattr(campaign.stages, "measure_step_seconds", lambda config: STEP_SECONDS)
     monkeypatch.setattr(campaign, "NUM_EVALS", 2)  # two held-out evaluations, not eight
     w = tmp_path / "w"
     hours = 0.002  # 7.2 s: int(7.2 * 0.85 / 0.5) = 12 steps
@@ -63,7 +63,7 @@ def test_campaign_holds_parts_out_trains_resumes_and_keeps_its_data(tmp_path, mo
     monkeypatch.setattr(trainer_module.Trainer, "run", run_then_stop)
     plan = campaign.main(argv)
     steps = plan["detector"]["steps"]
-    assert steps == int(hours * 3600 * (1 - campaign.adapt.EVAL_SHARE) / STEP_SECONDS) == 12
+    assert steps == int(hours * 3600 * (1 - campaign.stages.EVAL_SHARE) / STEP_SECONDS) == 12
     run = RunDir(w / "detector")
     stopped = run.checkpoint_steps()[-1]
     assert 0 < stopped < steps
@@ -83,7 +83,7 @@ def test_campaign_holds_parts_out_trains_resumes_and_keeps_its_data(tmp_path, mo
 
     # Resumed: the same plan (not measured again), trained to its end from the stopped step.
     monkeypatch.setattr(trainer_module.Trainer, "run", real_run)
-    monkeypatch.setattr(campaign.adapt, "measure_step_seconds",
+    monkeypatch.setattr(campaign.stages, "measure_step_seconds",
                         lambda config: pytest.fail("a resumed campaign measured again"))
     images = sorted(p.stat().st_mtime for p in (w / "data").rglob("rgb/*"))
     plan = campaign.main(argv)

@@ -3,8 +3,8 @@ the step of the total, averages of the steps since the last line."""
 
 import os
 
-from train.adapt import log_friendly_progress
 from train.logging_utils import MetricLogger
+from train.stages import log_friendly_progress
 
 
 def test_off_a_terminal_the_step_lines_are_the_progress(tmp_path, capsys):
