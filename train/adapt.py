@@ -57,6 +57,7 @@ from train.stages import (
     log_friendly_progress,
     measure_step_seconds,
     stage,
+    train_to,
 )
 
 #: Evaluations and checkpoints over a run.
@@ -244,24 +245,6 @@ def plan(args, configs: dict, workdir: pathlib.Path) -> dict:
     return saved
 
 
-def train(config, steps: int, workdir: pathlib.Path) -> None:
-    """Train ``config``'s model to ``steps`` in ``workdir`` (resuming; nothing to do when its
-    last checkpoint is at ``steps``)."""
-    from threept_jax.data.run_dir import RunDir
-    from train.trainers import trainer_class
-
-    done = RunDir(workdir, model=config.trainer).checkpoint_steps()
-    if done and done[-1] >= steps:
-        print(f"   finished (checkpoint at step {done[-1]}), skipped", flush=True)
-        return
-    config.total_steps = steps
-    every = max(steps // NUM_EVALS, 1)
-    config.eval.every_steps = every
-    config.checkpoint.every_steps = every
-    config.log_every = max(steps // 20, 1)
-    trainer_class(config)(config, workdir).run()
-
-
 # --------------------------------------------------------------------------- stage 6
 
 
@@ -351,10 +334,13 @@ def refiner_heldout(refiner: pathlib.Path) -> dict:
 
 def refiner_helps(h: dict) -> bool:
     """Whether the refiner's held-out figures (:func:`refiner_heldout`) allow using it: its
-    steps must not lower the MSSD recall of the poses they start from. A refiner that makes
+    steps must not lower the MSSD recall of the poses they start from (the rule inference warns
+    by, :func:`infer.checkpoint.heldout_check`). A refiner that makes
     held-out poses worse is not used for the test (the report says so): it would lose every
     user of it accuracy."""
-    return h["ar_mssd_after"] >= h["ar_mssd_before"]
+    from infer.checkpoint import heldout_check
+
+    return heldout_check({f"eval/{k}": v for k, v in h.items()}) is None
 
 
 def refiner_lines(h: dict) -> list[str]:
@@ -421,13 +407,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
     steps = budget["detector"]["steps"]
     start = stage(f"4/{n} detector training ({steps} steps, "
                    f"{'from ' + str(args.init_from) if args.init_from else 'from scratch'}) -> {w}")
-    train(configs["detector"], steps, w)
+    train_to(configs["detector"], steps, w, evals=NUM_EVALS)
     minutes["training"] = done(start) / 60
 
     if refiner:
         start = stage(f"5/{n} refiner training ({budget['refiner']['steps']} steps, from "
                        f"scratch) -> {refiner}")
-        train(configs["refiner"], budget["refiner"]["steps"], refiner)
+        train_to(configs["refiner"], budget["refiner"]["steps"], refiner, evals=NUM_EVALS)
         minutes["refiner_training"] = done(start) / 60
         heldout = refiner_heldout(refiner)
         for line in refiner_lines(heldout):

@@ -194,24 +194,6 @@ def plan_steps(args, plan: dict, config) -> dict:
     return entry
 
 
-def train(config, entry: dict, workdir: pathlib.Path) -> dict | None:
-    """Train to the planned steps in ``workdir``, resuming; None when already done."""
-    from threept_jax.data.run_dir import RunDir
-    from train.trainers import trainer_class
-
-    steps = entry["steps"]
-    done = RunDir(workdir, model=config.trainer).checkpoint_steps()
-    if done and done[-1] >= steps:
-        print(f"   finished (checkpoint at step {done[-1]})", flush=True)
-        return None
-    config.total_steps = steps
-    config.eval.every_steps = max(steps // NUM_EVALS, 1)
-    config.checkpoint.every_steps = max(1, min(
-        steps, int(CHECKPOINT_MINUTES * 60 / entry["step_seconds"])))
-    config.log_every = max(1, min(config.checkpoint.every_steps, 100))
-    return trainer_class(config)(config, workdir).run()
-
-
 def main(argv: Sequence[str] | None = None) -> dict:
     stages.log_friendly_progress()
     args = parse_args(argv)
@@ -242,7 +224,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     # Ctrl-C while training stops like SIGTERM: the trainer saves the step it reached.
     previous = signal.signal(signal.SIGINT, lambda *_: os.kill(os.getpid(), signal.SIGTERM))
     try:
-        summary = train(config, entry, w / args.model)
+        every = int(CHECKPOINT_MINUTES * 60 / entry["step_seconds"])
+        summary = stages.train_to(config, entry["steps"], w / args.model, evals=NUM_EVALS,
+                                  checkpoint_every=every, log_every=min(every, 100))
     finally:
         signal.signal(signal.SIGINT, previous)
     seconds = stages.done(start)

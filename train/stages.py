@@ -58,3 +58,24 @@ def measure_step_seconds(config) -> float:
             return (time.perf_counter() - start) / TIMED_STEPS
         finally:
             trainer.close()
+
+
+def train_to(config, steps: int, workdir, *, evals: int, checkpoint_every: int | None = None,
+             log_every: int | None = None) -> dict | None:
+    """Train ``config``'s model to ``steps`` in ``workdir``, resuming from its last checkpoint:
+    ``evals`` held-out evaluations over the run, a checkpoint at each of them (or every
+    ``checkpoint_every`` steps) and on SIGTERM. The trainer's summary, or None when the last
+    checkpoint is already at ``steps``."""
+    from threept_jax.data.run_dir import RunDir
+    from train.trainers import trainer_class
+
+    finished = RunDir(workdir, model=config.trainer).checkpoint_steps()
+    if finished and finished[-1] >= steps:
+        print(f"   finished (checkpoint at step {finished[-1]}), skipped", flush=True)
+        return None
+    config.total_steps = steps
+    config.eval.every_steps = max(steps // evals, 1)
+    config.checkpoint.every_steps = max(1, min(steps, checkpoint_every or steps // evals))
+    config.log_every = max(1, min(log_every or steps // 20, config.checkpoint.every_steps))
+    return trainer_class(config)(config, workdir).run()
+
