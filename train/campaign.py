@@ -31,6 +31,12 @@ Its stages each resume:
 
 Both models share ``W``'s data: ``--model detector`` then ``--model refiner`` on one workdir
 generate it once.
+
+Across machines the training state travels in the repository: ``python -m train.export --run
+W/detector --campaign W/campaign.json --out models/detector-NAME`` keeps the latest checkpoint
+whole while the run is unfinished, and on the next machine ``--resume-from
+models/detector-NAME`` starts ``W`` from it (the plan, the configs and the checkpoints, with
+``data_dir`` pointed at this machine's records: the regenerated data is the same).
 """
 
 from __future__ import annotations
@@ -39,11 +45,13 @@ import argparse
 import json
 import os
 import pathlib
+import shutil
 import signal
 import sys
 import time
 from collections.abc import Sequence
 
+from threept_jax.data.run_dir import RunDir
 from train import stages
 
 #: Scene layouts of the data, with the images per scene of each (a cell: one per pile).
@@ -78,6 +86,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--spp", type=int, default=2, help="samples per pixel, denoised")
     p.add_argument("--instances", type=int, default=8, help="mean part instances per scene")
     p.add_argument("--seed", type=int, default=0, help="parts and scenes")
+    p.add_argument("--resume-from", type=pathlib.Path, default=None, metavar="MODEL",
+                   help="an exported model of this campaign (train.export) to go on from when "
+                        "--workdir has no checkpoint of the model yet")
     args = p.parse_args(argv)
     if not 0 < args.hours <= 1000:
         p.error(f"--hours must be in (0, 1000], got {args.hours:g}")
@@ -93,6 +104,35 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         p.error(f"--resolution must be at least 64 x 64, got {args.resolution}")
     args.resolution = list(args.resolution)
     return args
+
+
+def seed_from(args) -> None:
+    """Start ``--workdir`` from ``--resume-from``'s plan, configs and checkpoints (module
+    docstring) when it has none of its own; refuses a model that cannot go on."""
+    src, run = args.resume_from, args.workdir / args.model
+    if src is None or RunDir(run, args.model).checkpoint_steps():
+        return
+    source = RunDir(src, args.model)
+    source.verify(restore=f"restore it with `git checkout -- {src}`")
+    if not (src / "campaign.json").exists() or not source.checkpoint_steps():
+        raise SystemExit(f"error: --resume-from {src} holds no campaign.json or no checkpoint: "
+                         f"export it with python -m train.export --campaign W/campaign.json")
+    config = source.read_config()
+    latest = source.path / "checkpoints" / str(source.checkpoint_steps()[-1])
+    if not (latest / "data").exists():
+        raise SystemExit(f"error: {src} is a finished model (no training state in {latest}); "
+                         "start a new campaign in a fresh --workdir to train further")
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    if not (args.workdir / "campaign.json").exists():
+        shutil.copy2(src / "campaign.json", args.workdir / "campaign.json")
+    run.mkdir(parents=True, exist_ok=True)
+    for f in src.iterdir():
+        if f.is_file() and f.suffix == ".json" and f.name != "campaign.json":
+            shutil.copy2(f, run / f.name)
+    config["data_dir"] = str((args.workdir / "records").resolve())
+    (run / "config.json").write_text(json.dumps(config, indent=1))
+    shutil.copytree(source.checkpoint_dir, RunDir(run, args.model).checkpoint_dir)
+    print(f"   {run} starts from {src} (step {source.checkpoint_steps()[-1]})", flush=True)
 
 
 def data_settings(args) -> dict:
@@ -197,6 +237,7 @@ def plan_steps(args, plan: dict, config) -> dict:
 def main(argv: Sequence[str] | None = None) -> dict:
     stages.log_friendly_progress()
     args = parse_args(argv)
+    seed_from(args)
     plan = read_plan(args)
     write_plan(args, plan)
     w = args.workdir

@@ -81,15 +81,47 @@ def test_campaign_holds_parts_out_trains_resumes_and_keeps_its_data(tmp_path, mo
     layouts = {src["scenes"].split("/")[-2] for src in index["train"]["sources"]}
     assert layouts == set(campaign.LAYOUTS)
 
-    # Resumed: the same plan (not measured again), trained to its end from the stopped step.
+    # Exported with its training state (the run is unfinished), checksummed.
+    from train import export
+
+    model = tmp_path / "models" / "detector-toy"
+    model.mkdir(parents=True)
+    (model / "MODEL_CARD.md").write_text("card")
+    info = export.main(["--run", str(w / "detector"), "--out", str(model),
+                        "--campaign", str(w / "campaign.json")])
+    assert info["resumable"] and info["latest"] == stopped
+    assert (model / "MODEL_CARD.md").read_text() == "card"
+    assert (model / "checkpoints" / str(stopped) / "data").is_dir()
+    RunDir(model).verify()
+
+    # Resumed on "another machine": a fresh workdir started from the exported model regenerates
+    # the same images, keeps the plan (not measured again) and trains from the stopped step.
     monkeypatch.setattr(trainer_module.Trainer, "run", real_run)
     monkeypatch.setattr(campaign.stages, "measure_step_seconds",
                         lambda config: pytest.fail("a resumed campaign measured again"))
-    images = sorted(p.stat().st_mtime for p in (w / "data").rglob("rgb/*"))
-    plan = campaign.main(argv)
-    assert run.checkpoint_steps()[-1] == steps
-    assert sorted(p.stat().st_mtime for p in (w / "data").rglob("rgb/*")) == images
+    w2 = tmp_path / "w2"
+    argv2 = [*argv[:4], "--workdir", str(w2), *TOY, "--resume-from", str(model)]
+    plan = campaign.main(argv2)
+    run2 = RunDir(w2 / "detector")
+    assert run2.checkpoint_steps()[-1] == steps
+    assert plan["detector"]["steps"] == steps
     assert [s["model"] for s in plan["sessions"]] == ["detector", "detector"]
+    first = sorted((w / "data").rglob("rgb/*"))
+    assert first and [p.read_bytes() for p in first] == [
+        (w2 / p.relative_to(w)).read_bytes() for p in first]
+
+    # Run again when finished: nothing is remade.
+    images = sorted(p.stat().st_mtime for p in (w2 / "data").rglob("rgb/*"))
+    campaign.main(argv2)
+    assert sorted(p.stat().st_mtime for p in (w2 / "data").rglob("rgb/*")) == images
+
+    # Finished: exported without training state, and refused as a start.
+    info = export.main(["--run", str(w2 / "detector"), "--out", str(model),
+                        "--campaign", str(w2 / "campaign.json")])
+    assert not info["resumable"]
+    assert not list((model / "checkpoints").rglob("data"))
+    with pytest.raises(SystemExit, match="finished model"):
+        campaign.main([*argv[:4], "--workdir", str(tmp_path / "w3"), *TOY, "--resume-from", str(model)])
 
     # Other data settings would change the images: refused, naming the saved value.
     with pytest.raises(SystemExit, match=r"--parts 6 \(given 7\)"):

@@ -19,6 +19,9 @@ other, both import this module::
         metrics/             the evaluation metrics saved with the step (Orbax's own item,
                              written when the manager has a ``best_fn``)
       tb/                    TensorBoard event files, TB_DIR
+      SHA256SUMS             an exported model's checksums (``train.export``), CHECKSUM_FILE:
+                             ``sha256sum`` lines for every file but itself and the ``*.md``
+                             cards; a run that has one is verified before it is loaded
 
 The best checkpoint is the one with the best ``checkpoint.best_metric`` of config.json
 (``checkpoint.best_mode`` "max" or "min") among the kept steps saved with that metric
@@ -29,6 +32,7 @@ The best checkpoint is the one with the best ``checkpoint.best_metric`` of confi
 from __future__ import annotations
 
 import datetime
+import hashlib
 import json
 import pathlib
 from collections.abc import Callable, Mapping, Sequence
@@ -46,6 +50,7 @@ MODEL_FILES: dict[str, tuple[str, type]] = {
 }
 CHECKPOINT_DIR = "checkpoints"
 TB_DIR = "tb"
+CHECKSUM_FILE = "SHA256SUMS"
 STATE_ITEM = "state"
 DATA_ITEM = "data"
 
@@ -162,6 +167,45 @@ class RunDir:
                     f"Resume it with the run's own config ({self.config_file}) or pass a fresh "
                     "--workdir")))
 
+    # -- checksums (exported models) ---------------------------------------------------
+
+    def checksummed_files(self) -> list[pathlib.Path]:
+        """The files :meth:`write_checksums` covers: all but the checksum file and ``*.md``."""
+        return sorted(p for p in self.path.rglob("*") if p.is_file()
+                      and p.name != CHECKSUM_FILE and p.suffix != ".md")
+
+    def write_checksums(self) -> None:
+        """``SHA256SUMS`` in ``sha256sum`` format (``sha256sum -c SHA256SUMS`` checks it)."""
+        lines = [f"{sha256(p)}  {p.relative_to(self.path).as_posix()}\n"
+                 for p in self.checksummed_files()]
+        atomic_write_bytes(self.path / CHECKSUM_FILE, "".join(lines).encode())
+
+    def verify(self, restore: str = "export it again (python -m train.export)") -> None:
+        """Check an exported model against its ``SHA256SUMS`` (nothing to do without one).
+
+        Raises :class:`ModelFileError` naming the first file that is missing, differs from its
+        checksum or is not listed; ``restore`` says how to get the folder back.
+        """
+        sums = self.path / CHECKSUM_FILE
+        if not sums.exists():
+            return
+        expected = {}
+        for line in sums.read_text().splitlines():
+            digest, _, name = line.partition("  ")
+            expected[name] = digest
+        for name, digest in expected.items():
+            f = self.path / name
+            problem = ("is missing" if not f.is_file() else
+                       None if sha256(f) == digest else "differs from its SHA-256 in "
+                       f"{CHECKSUM_FILE} (corrupt or changed)")
+            if problem:
+                raise ModelFileError(f"{f} {problem}: the model {self.path} cannot be trusted; "
+                                     f"{restore}")
+        for f in self.checksummed_files():
+            if f.relative_to(self.path).as_posix() not in expected:
+                raise ModelFileError(f"{f} is not part of the model {self.path} (not in "
+                                     f"{CHECKSUM_FILE}): remove it, or {restore}")
+
     # -- checkpoints ---------------------------------------------------------------------
 
     def checkpoint_steps(self) -> list[int]:
@@ -247,6 +291,7 @@ class RunDir:
         import jax
         from flax import nnx
 
+        self.verify()
         if self.model == "refiner":
             from threept_jax.models.refiner import Refiner as cls
         else:
@@ -260,6 +305,19 @@ class RunDir:
                               nnx.to_pure_dict(abstract_params))
         nnx.replace_by_pure_dict(abstract_params, self.restore_params(step, target))
         return nnx.merge(graphdef, abstract_params), cfg, step
+
+
+class ModelFileError(FileNotFoundError):
+    """A file of an exported model is missing, corrupt or foreign (:meth:`RunDir.verify`)."""
+
+
+def sha256(path) -> str:
+    """The SHA-256 of a file's bytes, as ``sha256sum`` prints it."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def metric_fn(name: str) -> Callable[[Mapping[str, float]], float]:
