@@ -16,7 +16,7 @@ test: $(STAMP)
 demo: $(STAMP)
 	$(PY) -m demo
 
-# Every benchmark on its defaults; bench/heldout.py needs a dataset and trained runs (README,
+# Every benchmark on its defaults; bench/heldout.py needs a dataset and trained runs (docs/benchmarks.md,
 # "Refinement on held-out scenes") and bench/flops.py is their shared helper module.
 bench: $(STAMP)
 	for f in bench/*.py; do \

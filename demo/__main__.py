@@ -7,16 +7,17 @@ downloaded and nothing from outside the repository:
    seed stand for the parts of a robot cell (one camera above a tray at a working distance,
    ``datagen/cell.py``; its depth range sets the pan-and-scan scales). Piles of them in the
    cell are path-traced (Mitsuba, 640x480, 2 samples per pixel denoised) and packed
-   with render banks, a detector (``--config``) is trained from scratch for ``--minutes``,
+   with render banks, a ``--config`` detector is trained from scratch for ``--minutes``
+   (``--from shipped`` fine-tunes the shipped detector, ``models/``, instead),
    then a refiner (3PT-R, ``train/configs/refiner.py:tiny``) for ``--refiner-minutes`` on the
    same records. The best detector checkpoint (full-image AP50 on val scenes) detects every
    part in new test scenes, object generation gives each detection a pose and the refiner
    refines it: box AP50, and BOP 6D AP, AP-mm and segmentation AP before refinement (object
    generation alone) and after it.
 2. **Zero-shot**: five other procedural parts, never seen in training, are onboarded from
-   their meshes alone and detected by the same detector in a cell of their own (val scenes
-   choose the overlay threshold, test scenes give the figures), and refined by the same
-   refiner, which never saw them either.
+   their meshes alone and detected by the shipped models, as a user who installs threept_jax
+   gets them, in a cell of their own (val scenes choose the overlay threshold, test scenes give
+   the figures), and refined by the shipped refiner when one ships.
 
 A refiner trained for a few CPU minutes may not improve the poses yet: its held-out figures
 (rotation error and MSSD recall before and after its steps) are printed, and a refiner that
@@ -28,7 +29,7 @@ from its last checkpoint). Outputs go to ``--out`` (default ``runs/demo``): ``re
 the two settings' overlays (``adapted/test/overlays``, ``zero_shot/test/overlays``: boxes and
 the contours of the refined poses, at least 640 px wide, only detections above the best-F1
 threshold of the val scenes). What 2 cores reach in these minutes, and the curve of AP against
-training time, are in the README ("Known limits", "Benchmarks").
+training time, are in docs/limits.md and docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -43,17 +44,17 @@ from collections.abc import Sequence
 ADAPTED_SEED, ZERO_SHOT_SEED = 7, 8
 
 
-def zero_shot(out: pathlib.Path, workdir: pathlib.Path, test_scenes: int, seed: int,
-              refiner: pathlib.Path | None) -> dict:
-    """Scenes of parts the detector (and ``refiner``) never saw (val and test shards),
-    detected by it (and refined)."""
+def zero_shot(out: pathlib.Path, test_scenes: int, seed: int) -> dict:
+    """Scenes of parts the shipped models never saw (val and test shards), detected (and
+    refined, when a refiner ships) by them."""
+    from infer.shipped import shipped
     from train import adapt
 
     args = adapt.parse_args(["--meshes", "procedural:5", "--seed", str(seed), "--workdir",
-                             str(out), "--test-scenes", str(test_scenes)])
+                             str(out), "--test-scenes", str(test_scenes), "--from", "scratch"])
     adapt.generate(args, out / "data", sets=("val", "test"))
-    return adapt.test(workdir, out / "data", out, out / "cache", overlays=6,
-                      instances=args.instances, refiner=refiner)
+    return adapt.test(shipped("detector"), out / "data", out, out / "cache", overlays=6,
+                      instances=args.instances, refiner=shipped("refiner"))
 
 
 def summary(name: str, figs: dict) -> list[str]:
@@ -74,8 +75,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/demo"))
     p.add_argument("--minutes", type=float, default=3.5, help="training budget")
+    p.add_argument("--from", dest="init_from", default="scratch", metavar="RUN|shipped|scratch",
+                   help="the adapted setting's detector (train.adapt --from): scratch trains a "
+                        "--config detector in --minutes; shipped fine-tunes the shipped one "
+                        "(its larger network takes fewer steps in the same minutes)")
     p.add_argument("--config", default="tiny", choices=CONFIGS,
-                   help="detector config (tiny: the most steps in a few minutes)")
+                   help="detector config with --from scratch (tiny: the most steps in a few "
+                        "minutes)")
     p.add_argument("--refiner-minutes", type=float, default=1.5,
                    help="refiner training budget (0: no refiner, object generation alone)")
     p.add_argument("--train-scenes", type=int, default=60, help="one image each (a cell)")
@@ -87,15 +93,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
     adapted = adapt.main([
         "--meshes", "procedural:5", "--seed", str(ADAPTED_SEED), "--workdir",
         str(args.out / "adapted"), "--minutes", f"{args.minutes:g}", "--config", args.config,
+        "--from", args.init_from,
         "--train-scenes", str(args.train_scenes), "--test-scenes", str(args.test_scenes),
         "--refiner-minutes", f"{args.refiner_minutes:g}"])
-    refiner = None if adapted["refiner"] is None else pathlib.Path(adapted["refiner"])
 
-    print(f"\n== zero-shot: 5 parts never seen in training -> {args.out / 'zero_shot'}",
-          flush=True)
+    print(f"\n== zero-shot: the shipped models on 5 parts never seen in training -> "
+          f"{args.out / 'zero_shot'}", flush=True)
     start = time.perf_counter()
-    unseen = zero_shot(args.out / "zero_shot", args.out / "adapted", args.test_scenes,
-                       ZERO_SHOT_SEED, refiner)
+    unseen = zero_shot(args.out / "zero_shot", args.test_scenes, ZERO_SHOT_SEED)
     print(f"   ({time.perf_counter() - start:.0f} s)")
 
     report = {"adapted": adapted, "zero_shot": unseen,
@@ -107,7 +112,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
              *(f"    {line}" for line in refiner_lines(adapted.get("refiner_heldout") or {})),
              *(["    the refiner is not used: it makes held-out poses worse"]
                if adapted.get("refiner_trained") and adapted["refiner"] is None else []),
-             *summary("zero-shot (5 parts never seen)", unseen["test"])]
+             *summary("zero-shot (the shipped models, 5 parts never seen)", unseen["test"])]
     print(f"\ndone in {report['minutes']:.1f} min. Full images, all parts queried, new scenes:\n"
           + "\n".join(f"  {line}" for line in lines)
           + f"\nReport {args.out / 'report.json'}; overlays {adapted['overlays']} and "

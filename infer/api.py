@@ -1,7 +1,7 @@
 """The public inference API: load the models once, then ``run_scene`` on any number of scenes.
 
     import infer
-    models = infer.load("runs/demo/train", refiner="runs/refiner")  # training run directories
+    models = infer.load()  # the shipped models; or infer.load("runs/demo/train", refiner=...)
     objects = models.onboard({1: "bracket.ply"}, units="mm")  # cached on disk per mesh
     for image, K in camera_stream:
         instances = infer.run_scene([image], [K], objects, models)
@@ -35,6 +35,7 @@ from infer.masks import PoseRenderer
 from infer.onboarding import ONBOARD_TEMPLATES, OnboardedObject, Onboarder
 from infer.refine import RefinedPose, SceneRefiner, refine_objects
 from infer.scene import Instances, assign_pixels, find_instances
+from infer.shipped import shipped
 from threept_jax.data.bop import Camera
 from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.models.configs import DetectorConfig, RefinerConfig
@@ -115,11 +116,14 @@ class Models:
 def load(workdir=None, step: int | str = "best", *, refiner=None,
          refiner_step: int | str = "best", cache_dir=DEFAULT_CACHE,
          num_templates: int = ONBOARD_TEMPLATES) -> Models:
-    """Load a detector training run (``step``: ``"best"``, ``"latest"`` or a number) with an
-    onboarder whose cache lives under ``cache_dir/onboarding`` (None: no disk cache), and/or a
-    refiner training run (``refiner``, ``refiner_step``). At least one of the two."""
+    """Load a detector training run or exported model (``step``: ``"best"``, ``"latest"`` or a
+    number) with an onboarder whose cache lives under ``cache_dir/onboarding`` (None: no disk
+    cache), and/or a refiner run (``refiner``, ``refiner_step``). With neither, the models
+    that ship in ``models/`` (:mod:`infer.shipped`): the detector and, when one ships, the
+    refiner; a missing or damaged file of theirs raises an error naming it and how to restore
+    it."""
     if workdir is None and refiner is None:
-        raise ValueError("infer.load needs a detector run (workdir) or a refiner run (refiner=)")
+        workdir, refiner = shipped("detector"), shipped("refiner")
     models = Models(None, None, None, None)
     if workdir is not None:
         model, cfg, step = load_detector(workdir, step)

@@ -457,7 +457,7 @@ def run_refine_only(args) -> dict:
 
     ds = bop.BopDataset(args.dataset_dir)
     per_image, models = refine_only_inputs(args, ds)
-    nets = load_models(args)
+    nets = load_models(args, detector=False)
     objects = refine_objects({k: m.path for k, m in models.items()})
     by_id = {o.obj_id: o for o in objects}
     split = ds.split(args.split)

@@ -2,7 +2,8 @@
 ``python -m infer images ...`` (your images + meshes -> JSON and overlays) and ``python -m infer
 track ...`` (image sequences or a video -> tracked poses, :mod:`infer.track_cli`).
 
-Run ``python -m infer bop --help`` / ``python -m infer images --help`` /
+Without ``--workdir`` / ``--refiner`` the commands use the models that ship in ``models/``
+(:mod:`infer.shipped`). Run ``python -m infer bop --help`` / ``python -m infer images --help`` /
 ``python -m infer track --help``.
 """
 
@@ -31,6 +32,7 @@ from infer.options import (
     read_rgb,
     refiner_options,
 )
+from infer.shipped import SHIPPED
 from infer.track_cli import add_track_parser
 from threept_jax.geometry.diameter import MeshUnitsError
 
@@ -129,14 +131,12 @@ def main(argv: Sequence[str] | None = None):
         parser.error(f"argument --depth-range: ZMIN must be <= ZMAX, got {args.depth_range[0]:g} "
                      f"{args.depth_range[1]:g}")
     if args.command == "bop":
-        if args.refine_only is not None and args.refiner is None:
-            parser.error("--refine-only needs --refiner RUN (the 3PT-R run that refines)")
+        if args.refine_only is not None and args.refiner is None and not SHIPPED["refiner"]:
+            parser.error("--refine-only needs --refiner RUN (the 3PT-R run that refines; no "
+                         "refiner ships yet)")
         if args.refine_only is not None and args.workdir is not None:
             parser.error("--refine-only refines another method's results without the detector: "
                          "drop --workdir")
-        if args.refine_only is None and args.workdir is None:
-            parser.error("the following arguments are required: --workdir (or --refine-only "
-                         "RESULTS.csv with --refiner)")
         if args.refine_only is not None and args.targets == "multiview":
             parser.error("--refine-only refines single-view results (camera frame): drop "
                          "--targets multiview")

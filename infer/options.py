@@ -19,6 +19,7 @@ import numpy as np
 
 from infer.api import DEFAULT_CACHE, Camera, load
 from infer.onboarding import ONBOARD_TEMPLATES
+from infer.shipped import describe, shipped
 from threept_jax.geometry.validate import validate_intrinsics, validate_rigid
 
 
@@ -70,11 +71,12 @@ def checkpoint_step(text: str) -> str | int:
 
 
 def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) -> None:
-    """The options every subcommand shares. ``workdir_when``: when the detector run is optional,
-    the help's words for when it is needed (``--workdir`` is required otherwise)."""
-    p.add_argument("--workdir", required=workdir_when is None,
-                   help="a detector training run (train/launch.py --workdir)"
-                   + ("" if workdir_when is None else f"; needed {workdir_when}"))
+    """The options every subcommand shares. ``workdir_when``: when the subcommand needs a
+    detector only sometimes, the help's words for when."""
+    p.add_argument("--workdir", type=pathlib.Path, default=None,
+                   help="a detector training run (train/launch.py --workdir) or exported model; "
+                        f"default: {describe('detector')}"
+                        + ("" if workdir_when is None else f"; used {workdir_when}"))
     p.add_argument("--step", type=checkpoint_step, default="best",
                    help="checkpoint: best, latest or a step number")
     p.add_argument("--num-templates", type=int_at_least(1), default=ONBOARD_TEMPLATES,
@@ -101,11 +103,12 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
                    help="overlay PNGs written (0: none)")
 
 
-def refiner_options(p: argparse.ArgumentParser, what: str, required: bool = False) -> None:
+def refiner_options(p: argparse.ArgumentParser, what: str) -> None:
     """``--refiner RUN`` (``what`` it does for the subcommand) and ``--refiner-step``."""
-    p.add_argument("--refiner", type=pathlib.Path, required=required, default=None,
-                   metavar="RUN", help="a 3PT-R training run (train/launch.py --config "
-                                       f"train/configs/refiner.py:tiny): {what}")
+    p.add_argument("--refiner", type=pathlib.Path, default=None, metavar="RUN",
+                   help="a 3PT-R training run (train/launch.py --config "
+                        f"train/configs/refiner.py:tiny) or exported model: {what}; default: "
+                        f"{describe('refiner')}; 'none': no refiner")
     p.add_argument("--refiner-step", type=checkpoint_step, default="best",
                    help="refiner checkpoint: best, latest or a step number")
 
@@ -124,14 +127,21 @@ def camera_options(p: argparse.ArgumentParser, per: str) -> None:
                         "cx' = (cx + 0.5) * sx - 0.5)")
 
 
-def load_models(args):
-    """The run's models (``infer.load``: the detector of ``--workdir`` and, when the command has
-    one, the refiner of ``--refiner``) with the onboarding and compilation caches."""
+def load_models(args, detector: bool = True):
+    """The command's models (``infer.load``), with the onboarding and compilation caches: the
+    detector of ``--workdir`` (when ``detector``; default the shipped one) and, when the command
+    has the option, the refiner of ``--refiner`` (default the shipped one, when one ships)."""
     import jax
 
     jax.config.update("jax_compilation_cache_dir", str(args.cache_dir / "jax"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-    return load(args.workdir, args.step, refiner=getattr(args, "refiner", None),
+    workdir = (args.workdir or shipped("detector")) if detector else None
+    refiner = None
+    if hasattr(args, "refiner") and str(args.refiner) != "none":
+        refiner = args.refiner or shipped("refiner")
+    if workdir is None and refiner is None:
+        raise ValueError("no model to load: pass --refiner RUN (no refiner ships yet)")
+    return load(workdir, args.step, refiner=refiner,
                 refiner_step=getattr(args, "refiner_step", "best"), cache_dir=args.cache_dir,
                 num_templates=args.num_templates)
 

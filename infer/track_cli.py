@@ -2,7 +2,8 @@
 
 Each frame refines every tracked instance from its pose in the previous frame
 (:func:`infer.track`); the first frame starts from ``--init`` poses, or from a detection
-(``--workdir``, a 3PT-D run) when there are none. With a detector, a frame where an instance's
+(``--workdir``, a 3PT-D run; the shipped detector by default) when there are none. With a
+detector (loaded without ``--init``, with ``--min-score`` or ``--workdir``), a frame where an instance's
 refiner score falls under ``--min-score``, or where nothing is tracked, runs detection, object
 generation and refinement again (:func:`infer.run_scene`).
 
@@ -46,6 +47,7 @@ from infer.options import (
     read_rgb,
     refiner_options,
 )
+from infer.shipped import SHIPPED
 from threept_jax.geometry.validate import validate_rigid
 
 #: Image files ``--frames`` reads (by suffix, case-insensitive).
@@ -58,7 +60,7 @@ def add_track_parser(sub) -> argparse.ArgumentParser:
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     common_options(p, workdir_when="without --init (the first frame is detected) and for re-detection "
                             "(--min-score, or nothing tracked)")
-    refiner_options(p, "refine every tracked object in every frame", required=True)
+    refiner_options(p, "refine every tracked object in every frame")
     p.add_argument("--mesh", action="append", required=True, metavar="ID=PATH",
                    help="an object to track (repeat): integer id and mesh file")
     p.add_argument("--units", default="mm", choices=("mm", "cm", "m", "in"),
@@ -239,12 +241,12 @@ def run_track(args) -> dict:
         raise ValueError(f"--video {args.video}: no frame could be read")
     Ks, _ = prepare_views(first, cameras)  # K against the frame size, before the slow work
     init = None if args.init is None else read_init(args.init, set(meshes))
-    if args.workdir is None and init is None:
-        raise ValueError("nothing to start from: give --init FILE (initial poses) or --workdir "
-                         "DETECTOR_RUN (to detect objects on the first frame)")
-    if args.workdir is None and args.min_score is not None:
-        raise ValueError("--min-score re-detects objects: it needs --workdir DETECTOR_RUN")
-    models = load_models(args)
+    if args.refiner is None and not SHIPPED["refiner"]:
+        raise ValueError("track refines every frame: pass --refiner RUN (a 3PT-R run; no "
+                         "refiner ships yet)")
+    # The detector finds the first frame's objects (no --init) and re-detects (--min-score).
+    detecting = init is None or args.min_score is not None or args.workdir is not None
+    models = load_models(args, detector=detecting)
     objects = (models.onboard(meshes, units=args.units) if models.detector is not None
                else refine_objects(meshes, units=args.units))
     min_score = -np.inf if args.min_score is None else args.min_score

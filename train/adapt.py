@@ -17,8 +17,9 @@ that with our own data engine, in stages that each resume when the command is ru
    steps of a throw-away state) and the number of steps that fits its budget (``--minutes``
    for the detector, ``--refiner-minutes`` for the refiner) is fixed in ``W/adapt.json``, so
    that a resumed run keeps its learning-rate schedule.
-4. **Detector training** (``train.trainer_detector``), from scratch or from ``--from RUN``'s
-   best checkpoint (fine-tuning: the model section is that run's). ``W`` is an ordinary run
+4. **Detector training** (``train.trainer_detector``), fine-tuning the shipped detector
+   (``models/``, :mod:`infer.shipped`) by default, ``--from RUN``'s best checkpoint, or from
+   scratch (``--from scratch``); fine-tuning keeps the model section of the run it starts from. ``W`` is an ordinary run
    directory (``config.json``, ``checkpoints/``, ``tb/``): ``python -m infer images --workdir
    W`` loads it, and a killed run resumes from its last checkpoint.
 5. **Refiner training** (``train.trainer_refiner``, only with ``--refiner-minutes`` > 0; the
@@ -76,9 +77,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                         "report.json")
     p.add_argument("--minutes", type=float, default=10.0,
                    help="detector training budget (wall clock)")
-    p.add_argument("--from", dest="init_from", type=pathlib.Path, default=None,
-                   help="a detector training run to fine-tune (its best checkpoint); default: "
-                        "train from scratch")
+    p.add_argument("--from", dest="init_from", default="shipped", metavar="RUN|shipped|scratch",
+                   help="the detector to fine-tune (a training run or exported model: its best "
+                        "checkpoint), 'shipped' (models/, infer.shipped) or 'scratch'")
     p.add_argument("--config", default="cpu", choices=CONFIGS,
                    help="train/configs/detector.py config (ignored for the model with --from)")
     p.add_argument("--refiner-minutes", type=float, default=0.0,
@@ -113,6 +114,18 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                 f"{args.refiner_minutes:g}")
     if min(args.resolution) < 64:
         p.error(f"--resolution must be at least 64 x 64, got {args.resolution}")
+    if args.init_from == "scratch":
+        args.init_from = None
+    elif args.init_from == "shipped":
+        from infer.shipped import shipped
+        from threept_jax.data.run_dir import ModelFileError
+
+        try:
+            args.init_from = shipped("detector")
+        except ModelFileError as e:
+            p.error(f"--from shipped: {e}")
+    else:
+        args.init_from = pathlib.Path(args.init_from)
     if args.init_from is not None and not (args.init_from / "detector.json").exists():
         p.error(f"--from {args.init_from} is not a detector training run (no detector.json); "
                 "pass the --workdir of a train/launch.py or train.adapt run")
@@ -261,10 +274,11 @@ def max_detections(instances: int) -> int:
 
 def infer_bop(workdir: pathlib.Path, dataset: pathlib.Path, out: pathlib.Path, cache: pathlib.Path,
               max_detections: int, overlays: int = 0, overlay_threshold: float | None = None,
-              refiner: pathlib.Path | None = None) -> dict:
+              refiner: pathlib.Path | None = None, obj_ids: Sequence[int] = ()) -> dict:
     """``python -m infer bop --evaluate`` of the best detector checkpoint of ``workdir`` (and
     of ``refiner``'s best checkpoint when given) on ``dataset``'s ``val_pbr`` images, the
-    ``max_detections`` best detections of an image whatever their score."""
+    ``max_detections`` best detections of an image whatever their score; every object of the
+    dataset queried, or ``obj_ids``."""
     from infer.cli import main as infer_main
 
     argv = ["bop", "--workdir", str(workdir), "--step", "best", "--dataset-dir", str(dataset),
@@ -273,8 +287,9 @@ def infer_bop(workdir: pathlib.Path, dataset: pathlib.Path, out: pathlib.Path, c
             "--out", str(out), "--overlays", str(overlays), "--cache-dir", str(cache)]
     if overlay_threshold is not None:
         argv += ["--overlay-threshold", f"{overlay_threshold:.6g}"]
-    if refiner is not None:
-        argv += ["--refiner", str(refiner), "--refiner-step", "best"]
+    argv += ["--refiner", "none" if refiner is None else str(refiner)]
+    if obj_ids:
+        argv += ["--obj-ids", *map(str, obj_ids)]
     return infer_main(argv)
 
 

@@ -173,18 +173,28 @@ def generate(args, data: pathlib.Path) -> list[pathlib.Path]:
     out = []
     for i, (layout, per_scene) in enumerate(LAYOUTS.items()):
         folder = data / layout
-        common = ["--out", str(folder), "--meshes", f"procedural:{args.parts}", "--seed",
-                  str(args.seed), "--val-fraction", str(args.heldout), "--layout", layout,
-                  "--resolution", *map(str, args.resolution), "--spp", str(args.spp),
-                  "--max-depth", "3", "--instances", str(args.instances), "--distinct", "1",
-                  str(min(args.instances, 6)), "--images-per-scene", str(per_scene), "--quiet"]
         for split, images in (("train", args.train_images), ("val", args.heldout_images)):
             scenes = max(1, -(-share(images, i, len(LAYOUTS)) // per_scene))
             print(f"   {layout} {split}: {scenes} scenes x {per_scene} image(s) -> {folder}",
                   flush=True)
-            G.main([*common, "--split", split, "--num-scenes", str(scenes)])
+            G.main(datagen_argv(data, layout, split, scenes, **data_settings(args)))
         out.append(folder)
     return out
+
+
+def datagen_argv(data: pathlib.Path, layout: str, split: str, scenes: int, *, parts: int,
+                 seed: int, heldout: float, resolution, spp: int, instances: int,
+                 **_) -> list[str]:
+    """``python -m datagen.generate`` arguments of the first ``scenes`` scenes of a layout's
+    split, from the campaign's data settings (``campaign.json``'s ``data``): scene ``s`` is the
+    same images for any ``scenes`` > ``s``, so a test can remake a campaign's first held-out
+    scenes."""
+    return ["--out", str(data / layout), "--meshes", f"procedural:{parts}", "--seed", str(seed),
+            "--val-fraction", str(heldout), "--layout", layout,
+            "--resolution", *map(str, resolution), "--spp", str(spp), "--max-depth", "3",
+            "--instances", str(instances), "--distinct", "1", str(min(instances, 6)),
+            "--images-per-scene", str(LAYOUTS[layout]), "--quiet", "--split", split,
+            "--num-scenes", str(scenes)]
 
 
 def pack(folders: Sequence[pathlib.Path], records: pathlib.Path, render_size: int) -> None:

@@ -10,7 +10,7 @@ Overrides use ml_collections' syntax, e.g. ``--config.data_dir=/data/records
 run resumes from the latest checkpoint in ``--workdir`` when there is one. On several hosts,
 start the same command on every host (Slurm, Open MPI, or ``JAX_COORDINATOR_ADDRESS``,
 ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID``): the launcher calls ``jax.distributed.initialize()``
-first (``--config.distributed``; README "Training on a cluster"). SIGTERM saves a checkpoint
+first (``--config.distributed``; docs/cluster.md). SIGTERM saves a checkpoint
 at the next step and exits 0. A resume refuses a config that changes the run's seed, batch
 size, data or optimisation (``--allow_config_change`` allows it and keeps the old config in
 ``config_history.json``) and any change of the model.

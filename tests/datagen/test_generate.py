@@ -215,7 +215,7 @@ def test_cli_errors_name_the_fix(tmp_path, capsys):
 
 
 def test_shared_bop_meshes(bop_models_dir, tmp_path):
-    """The README's example on the shared meshes: BOP models keep their ids' files (copied,
+    """docs/datagen.md's example on the shared meshes: BOP models keep their ids' files (copied,
     textures renamed), symmetries and a two-view rig."""
     out = tmp_path / "bop"
     generate.main(["--meshes", str(bop_models_dir / "itodd" / "models"),

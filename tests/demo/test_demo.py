@@ -35,6 +35,10 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
         return {"test": _figures(0.05, refined=refiner is not None),
                 "overlays": str(out / "test" / "overlays")}
 
+    import infer.shipped
+
+    models = {"detector": tmp_path / "models" / "d", "refiner": tmp_path / "models" / "r"}
+    monkeypatch.setattr(infer.shipped, "shipped", models.get)
     monkeypatch.setattr(adapt, "main", fake_main)
     monkeypatch.setattr(adapt, "generate", lambda *a, **k: None)
     monkeypatch.setattr(adapt, "test", fake_test)
@@ -42,9 +46,9 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
 
     argv = calls["adapt"]
     assert float(argv[argv.index("--refiner-minutes") + 1]) > 0  # a refiner by default
-    # The zero-shot parts are refined by the adapted run's refiner (it never saw them either).
-    assert calls["zero_shot"] == (tmp_path / "out" / "adapted",
-                                  tmp_path / "out" / "adapted" / "refiner")
+    assert argv[argv.index("--from") + 1] == "scratch"  # the tiny detector of a few minutes
+    # The zero-shot parts meet the shipped models, as a user who installs threept_jax does.
+    assert calls["zero_shot"] == (models["detector"], models["refiner"])
     saved = json.loads((tmp_path / "out" / "report.json").read_text())
     for setting in ("adapted", "zero_shot"):
         assert saved[setting]["test"]["pose_ap_initial"] == pytest.approx(0.1)
@@ -57,6 +61,9 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
 
 
 def test_demo_without_refiner_reports_object_generation(tmp_path, monkeypatch, capsys):
+    import infer.shipped
+
+    monkeypatch.setattr(infer.shipped, "shipped", {"detector": tmp_path / "d"}.get)
     monkeypatch.setattr(adapt, "main", lambda argv: {
         "test": _figures(0.3, refined=False), "refiner": None, "overlays": "o"})
     monkeypatch.setattr(adapt, "generate", lambda *a, **k: None)

@@ -59,7 +59,7 @@ def onboarded(monkeypatch):
             seen.update(meshes)
             raise _Onboarding
 
-    monkeypatch.setattr(bop_runner, "load_models", lambda args: FakeNets())
+    monkeypatch.setattr(bop_runner, "load_models", lambda args, detector=True: FakeNets())
     return seen
 
 
@@ -99,7 +99,7 @@ def test_images_without_detections_are_reported(dataset, monkeypatch, capsys):
         def onboard(self, meshes):
             return []
 
-    monkeypatch.setattr(bop_runner, "load_models", lambda args: FakeNets())
+    monkeypatch.setattr(bop_runner, "load_models", lambda args, detector=True: FakeNets())
     monkeypatch.setattr(bop_runner, "run_scene",
                         lambda *a, **k: Instances([], best_score=0.0517))
     main(_argv(dataset, "--targets", "bop19"))
@@ -211,8 +211,14 @@ def test_load_models_passes_the_refiner_run(monkeypatch, tmp_path):
         ["bop", "--workdir", "d", "--refiner", "r", "--refiner-step", "7", "--dataset-dir", "x",
          "--out", "o", "--cache-dir", str(tmp_path)])
     options.load_models(args)
-    assert seen["args"] == ("d", "best") and str(seen["refiner"]) == "r"
+    assert tuple(map(str, seen["args"])) == ("d", "best") and str(seen["refiner"]) == "r"
     assert seen["refiner_step"] == 7
+    # Without --workdir / --refiner: the shipped detector, and the shipped refiner (none yet).
+    shipped = {"detector": tmp_path / "models" / "d", "refiner": None}
+    monkeypatch.setattr(options, "shipped", shipped.get)
+    args = cli.build_parser().parse_args(["bop", "--dataset-dir", "x", "--out", "o"])
+    options.load_models(args)
+    assert seen["args"] == (shipped["detector"], "best") and seen["refiner"] is None
 
 
 def test_single_view_run_writes_refined_and_initial_results(bop_setup, tmp_path, monkeypatch):
@@ -228,7 +234,7 @@ def test_single_view_run_writes_refined_and_initial_results(bop_setup, tmp_path,
         calls.append((args[0], found, time.perf_counter() - start))
         return found
 
-    monkeypatch.setattr(bop_runner, "load_models", lambda args: models)
+    monkeypatch.setattr(bop_runner, "load_models", lambda args, detector=True: models)
     monkeypatch.setattr(bop_runner, "run_scene", spy)
     summary = main(_run_argv(bop_setup, tmp_path, "--targets", "all", "--max-images", "2",
                              "--evaluate"))
@@ -310,7 +316,7 @@ def test_multiview_run_writes_each_view_in_its_camera_frame(bop_setup, tmp_path,
                      (nudge @ T_b).astype(np.float32), -2.0)
         return Instances([a, b], best_score=0.9)
 
-    monkeypatch.setattr(bop_runner, "load_models", lambda args: models)
+    monkeypatch.setattr(bop_runner, "load_models", lambda args, detector=True: models)
     monkeypatch.setattr(bop_runner, "run_scene", fake_run_scene)
     summary = main(_run_argv(bop_setup, tmp_path, "--targets", "multiview", "--evaluate"))
     assert len(calls) == 2
@@ -378,7 +384,7 @@ def test_refine_only_refines_every_row_keeping_scores_and_adding_time(bop_setup,
         calls.append((initial_poses, out, time.perf_counter() - start))
         return out
 
-    monkeypatch.setattr(bop_runner, "load_models", lambda args: models)
+    monkeypatch.setattr(bop_runner, "load_models", lambda args, detector=True: models)
     monkeypatch.setattr(bop_runner, "refine", spy)
     out = tmp_path / "out"
     summary = main(["bop", "--refine-only", str(path), "--refiner", str(refiner),
@@ -408,7 +414,7 @@ def test_refine_only_refines_every_row_keeping_scores_and_adding_time(bop_setup,
 
 
 def test_refine_only_input_errors_exit_2_naming_the_file(dataset, monkeypatch, capsys):
-    def no_load(args):
+    def no_load(args, detector=True):
         raise AssertionError("models loaded before the inputs were checked")
 
     monkeypatch.setattr(bop_runner, "load_models", no_load)
@@ -435,8 +441,7 @@ def test_refine_only_input_errors_exit_2_naming_the_file(dataset, monkeypatch, c
     fails(base, "error:", str(csv), "scene 1 image 5")
     csv.write_text(_csv_row(2, 0, 1, 0.5, T, 0.1) + "\n")
     fails(base, "error:", str(csv), "scene 2 image 0")
-    # The options: --refine-only needs --refiner and no detector; a run needs one.
+    # The options: --refine-only needs --refiner (none ships) and no detector.
     fails([a for a in base if a not in ("--refiner", str(dataset / "ref"))],
           "--refine-only needs --refiner")
     fails(base + ["--workdir", str(dataset)], "drop --workdir")
-    fails(base[:1] + base[3:7], "required: --workdir")

@@ -65,10 +65,10 @@ def loads(env, monkeypatch):
     """The CLI's model loading, memoised per (detector run, refiner run) across the module."""
     real, memo = track_cli.load_models, env["memo"]
 
-    def load(args):
-        key = (args.workdir, str(args.refiner))
+    def load(args, detector=True):
+        key = (args.workdir if detector else None, str(args.refiner))
         if key not in memo:
-            memo[key] = real(args)
+            memo[key] = real(args, detector)
             if memo.get("refiners") is None:
                 memo["refiners"] = memo[key]._scene_refiners
             # The same refiner run in every entry: one compiled loop for the module.
@@ -203,9 +203,9 @@ def test_bad_input_is_named_before_loading(env, no_models, tmp_path, capsys):
     scaled.write_text(json.dumps([{"obj_id": 1, "T_world_obj": np.diag([2, 2, 2, 1]).tolist()}]))
     fails_naming(capsys, _argv(env, "--frames", frames, "--K", K, "--init", str(scaled)),
            "is not a rigid transform")
-    fails_naming(capsys, _argv(env, "--frames", frames, "--K", K), "give --init FILE")
-    fails_naming(capsys, _argv(env, "--frames", frames, "--K", K, "--init", init, "--min-score", "0"),
-           "--min-score re-detects objects: it needs --workdir")
+    no_refiner = _argv(env, "--frames", frames, "--K", K, "--init", init)
+    del no_refiner[1:3]
+    fails_naming(capsys, no_refiner, "track refines every frame: pass --refiner RUN")
     fails_naming(capsys, _argv(env, "--frames", frames, frames, "--K", K, "--K", K, "--init", init),
            "2 views need each camera's pose")
     fails_naming(capsys, _argv(env, "--frames", frames, "--init", init), "0 --K for 1 view(s)")
@@ -213,14 +213,12 @@ def test_bad_input_is_named_before_loading(env, no_models, tmp_path, capsys):
            "no such folder")
     fails_naming(capsys, _argv(env, "--frames", frames, "--K", "900,900,500,31.5", "--init", init),
            "outside the 96x64 image")
-    fails_naming(capsys, ["track", "--out", str(tmp_path), "--mesh", "1=a.ply", "--frames", frames],
-           "--refiner")
 
 
 def test_a_mesh_in_metres_names_the_units_flag(env, monkeypatch, tmp_path, capsys):
     trimesh.creation.box((0.08, 0.04, 0.02)).export(tmp_path / "metres.ply")
     monkeypatch.setattr(track_cli, "load_models",
-                        lambda args: infer.Models(None, None, None, None))  # refiner only
+                        lambda args, detector: infer.Models(None, None, None, None))  # refiner only
     argv = _argv(env, "--frames", str(env["frames"]), "--K", K, "--init", str(env["init"]))
     argv[argv.index(f"1={env['root'] / 'plate.ply'}")] = f"1={tmp_path / 'metres.ply'}"
     fails_naming(capsys, argv, "it looks like metres: pass --units m to convert it to mm")

@@ -9,6 +9,7 @@ import pytest
 from infer import api
 from infer.checkpoint import load_detector, load_refiner
 from infer.refine import SceneRefiner
+from tests.fixtures.run_dirs import tiny_detector_run
 from threept_jax.data.run_dir import RunDir
 from threept_jax.pipeline.refine_loop import LoopSettings
 from train import adapt, stages
@@ -27,8 +28,21 @@ def test_bad_arguments_exit_2_naming_the_flag(tmp_path, capsys):
             adapt.main(["--meshes", "procedural:1", "--workdir", str(tmp_path / "w"), *argv])
         assert e.value.code == 2
         assert match in capsys.readouterr().err
-    args = adapt.parse_args(["--meshes", "procedural:1", "--workdir", str(tmp_path)])
+    args = adapt.parse_args(["--meshes", "procedural:1", "--workdir", str(tmp_path), "--from",
+                             "scratch"])
     assert args.refiner_minutes == 0 and args.refiner_config == "tiny"  # no refiner by default
+    assert args.init_from is None
+
+
+def test_from_defaults_to_the_shipped_detector(tmp_path, monkeypatch):
+    import infer.shipped
+
+    run = tiny_detector_run(tmp_path / "models" / "detector-x")
+    monkeypatch.setattr(infer.shipped, "MODELS_DIR", tmp_path / "models")
+    monkeypatch.setattr(infer.shipped, "SHIPPED", {"detector": "detector-x", "refiner": None})
+    args = adapt.parse_args(["--meshes", "procedural:1", "--workdir", str(tmp_path / "w")])
+    assert args.init_from == run
+    assert adapt.base_config(args, tmp_path / "records").init_from == str(run)
 
 
 def test_corrupt_meshes_are_checked_before_any_work(tmp_path, capsys):
@@ -43,9 +57,10 @@ def test_corrupt_meshes_are_checked_before_any_work(tmp_path, capsys):
     (mixed_dir / "obj_000018.ply").write_bytes(data)
     work = tmp_path / "w"
     with pytest.raises(SystemExit, match=r"(?s)no usable mesh in --meshes.*obj_000005.ply"):
-        adapt.main(["--meshes", str(bad_dir), "--workdir", str(work)])
+        adapt.main(["--meshes", str(bad_dir), "--workdir", str(work), "--from", "scratch"])
     assert not work.exists()
-    args = adapt.parse_args(["--meshes", str(mixed_dir), "--workdir", str(work)])
+    args = adapt.parse_args(["--meshes", str(mixed_dir), "--workdir", str(work), "--from",
+                             "scratch"])
     adapt.check_meshes(args)
     out = capsys.readouterr().out
     assert "skipping 1 of 2 meshes" in out and "obj_000005.ply" in out, out
@@ -179,7 +194,7 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
     argv = ["--meshes", "procedural:2", "--seed", "3", "--workdir", str(w), "--minutes", "0.15",
             "--config", "tiny", "--train-scenes", "4", "--test-scenes", "1", "--resolution",
             "96", "80", "--spp", "1", "--instances", "3", "--overlays", "1",
-            "--refiner-minutes", "0.06"]
+            "--refiner-minutes", "0.06", "--from", "scratch"]
     report = adapt.main(argv)
 
     # Three disjoint scene sets of the same parts: val and test are shards of one held-out set.

@@ -42,7 +42,7 @@ def get_config(arg: str = "tiny") -> ml_collections.ConfigDict:
     # The sub-pixel fit of matched 3D points assumes a descriptor similarity peaked in 3D
     # distance: exact for the oracle (whose tests need it for sub-millimetre poses), but with a
     # trained tiny refiner (800 CPU steps) it lowered held-out MSSD recall after 3 steps from
-    # 0.41 (off) to 0.29 (on) (README, "Refiner training (CPU)").
+    # 0.41 (off) to 0.29 (on) (docs/benchmarks.md, "Refiner training (CPU)").
     c.refine.subpixel = False
     if arg in ("tiny", "cpu"):
         c.total_steps = 1000 if arg == "tiny" else 6000
