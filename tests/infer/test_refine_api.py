@@ -104,8 +104,6 @@ def test_refine_errors_name_the_problem(refiner_models):
     with pytest.raises(ValueError, match="no refiner loaded"):
         infer.refine([image], [K], meshes, [(1, pose_z(0, 0, 500))],
                      infer.Models(None, None, None, None))
-    with pytest.raises(ValueError, match="detector run .* or a refiner run"):
-        infer.load()
     rig = [infer.Camera(K, T_cam_world=np.eye(4)), infer.Camera(K, T_cam_world=np.eye(4))]
     with pytest.raises(ValueError, match="one size"):
         infer.refine([image, np.zeros((64, 64, 3), np.uint8)], rig, meshes,

@@ -117,13 +117,14 @@ def test_test_stage_refines_the_test_scenes_only(tmp_path, monkeypatch):
 
     def fake_main(argv):
         calls.append(argv)
-        return _summary(0.2, initial="--refiner" in argv)
+        return _summary(0.2, initial=argv[argv.index("--refiner") + 1] != "none")
 
     monkeypatch.setattr(infer.cli, "main", fake_main)
     report = adapt.test(tmp_path / "w", tmp_path / "data", tmp_path / "w", tmp_path / "cache",
                         overlays=2, instances=6, refiner=tmp_path / "w" / "refiner")
     (val, test) = calls
-    assert "--refiner" not in val  # the val scenes choose the overlay threshold: boxes alone
+    # The val scenes choose the overlay threshold: boxes alone, no refiner (not a shipped one).
+    assert val[val.index("--refiner") + 1] == "none"
     i = test.index("--refiner")
     assert test[i + 1] == str(tmp_path / "w" / "refiner")
     # Scenes of --instances 6 hold 3 to 9 instances (datagen's spread 0.5).
