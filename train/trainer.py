@@ -16,10 +16,10 @@ else of a run is here, once:
   the host never stalls the device) and a non-finite loss or gradient norm stops the run
   naming the step and the terms (:func:`check_finite`).
 * **Checkpoints** (:mod:`train.checkpointing`, layout :mod:`threept_jax.data.run_dir`) every
-  ``checkpoint.every_steps``, at the end and on SIGTERM (then the run stops), with the grain
-  iterator, so a resumed run reads the same next batch.
-* **Evaluation** every ``eval.every_steps`` and at the end; its metrics rank the checkpoints
-  (``checkpoint.best_metric``).
+  ``checkpoint.every_steps``, after every evaluation, at the end and on SIGTERM (then the run
+  stops), with the grain iterator, so a resumed run reads the same next batch.
+* **Evaluation** every ``eval.every_steps`` and at the end; its metrics are saved with the
+  checkpoint of that step and rank the checkpoints (``checkpoint.best_metric``).
 * **Logs** (:mod:`train.logging_utils`): TensorBoard, the console and a progress bar.
 """
 
@@ -372,8 +372,9 @@ class Trainer:
                 pending = (step, host_batch if hooks else None, metrics)
                 last = step == c.total_steps
                 do_eval = c.eval.every_steps > 0 and (step % c.eval.every_steps == 0 or last)
-                do_save = last or (c.checkpoint.every_steps > 0
-                                   and step % c.checkpoint.every_steps == 0)
+                # An evaluation's metrics rank the checkpoint of its step: always save one.
+                do_save = last or do_eval or (c.checkpoint.every_steps > 0
+                                              and step % c.checkpoint.every_steps == 0)
                 if do_eval or do_save:
                     finish(pending)
                     pending = None

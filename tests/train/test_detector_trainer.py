@@ -202,6 +202,26 @@ def test_best_checkpoint_is_chosen_by_the_full_image_ap50(toy, tmp_path, monkeyp
     assert RunDir(tmp_path).best_step() == 2
 
 
+def test_every_evaluation_is_saved_with_its_checkpoint(toy, tmp_path, monkeypatch):
+    """Evaluations every 3 steps, checkpoints every 2, 6 steps: an evaluation's step (3) gets a
+    checkpoint holding its metrics, so it can be ranked; by hand the saves are 2, 3, 4, 6."""
+    from infer.checkpoint import saved_metrics
+
+    scores = iter([0.3, 0.6])
+    monkeypatch.setattr(eval_detector, "full_image_metrics",
+                        lambda *a, **k: {"eval/ap50": next(scores)})
+    monkeypatch.setattr(eval_detector, "compute_metrics", lambda *a, **k: {})
+    cfg = small_config(toy, total_steps=6, **{"eval.every_steps": 3, "checkpoint.every_steps": 2,
+                                              "checkpoint.max_to_keep": 10})
+    with pytest.warns(UserWarning, match="no 6D AP"):
+        td.train(cfg, tmp_path, devices=jax.devices()[:1], step_cache=STEPS)
+    run = RunDir(tmp_path)
+    assert run.checkpoint_steps() == [2, 3, 4, 6]
+    assert saved_metrics(tmp_path, 3)["eval/ap50"] == 0.3
+    assert saved_metrics(tmp_path, 6)["eval/ap50"] == 0.6
+    assert run.best_step() == 6
+
+
 def test_killed_subprocess_resumes_to_the_same_batch(toy, tmp_path):
     """A real run killed with SIGKILL after its step-2 checkpoint resumes to step 3 exactly."""
     workdir = tmp_path / "killed"
