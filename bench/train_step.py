@@ -13,8 +13,9 @@ batches of the right shapes, over a mesh of all local devices:
   peak dense bf16 FLOP/s is printed too when the device is known (H100: 989 TFLOP/s,
   H200: 989 TFLOP/s).
 
-Variants: ``tiny`` (128 px tiles, 32 px renders) and ``S/16`` (512 px tiles, 112 px renders)
-everywhere; ``B/16`` (512 px, 224 px renders, bf16, remat) when an accelerator is present.
+Variants: ``tiny`` and ``mini/16`` (the ``cpu`` config; 128 px tiles, 32 px renders) and
+``S/16`` (512 px tiles, 112 px renders) everywhere; ``B/16`` (512 px, 224 px renders, bf16,
+remat) when an accelerator is present.
 ``python bench/train_step.py [--variants tiny S/16] [--steps 5]``.
 """
 
@@ -36,6 +37,7 @@ from train.configs import detector as detector_configs
 #: variant -> (tile, render, templates per example, max instances, batch on CPU, on GPU)
 SETUPS = {
     "tiny": (128, 32, 16, 8, 8, 256),
+    "mini/16": (128, 32, 32, 8, 16, 64),  # the cpu config: the shipped detector
     "S/16": (512, 112, 16, 16, 2, 64),
     "B/16": (512, 224, 64, 32, 1, 32),
 }

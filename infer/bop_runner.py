@@ -2,7 +2,9 @@
 overlays, and optionally the BOP evaluator's scores.
 
 Every image (``--targets bop19|bop24|all``) or multi-view group (``--targets multiview``) is
-one :func:`infer.run_scene` call: detection, object generation, and refinement when a refiner
+one :func:`infer.run_scene` call, queried with every selected object, or with BOP19 targets
+(no ``--obj-ids``) with the objects its targets name, as the BOP 6D localisation task gives
+them: detection, object generation, and refinement when a refiner
 is given (``--refiner``). An image's BOP ``time`` is the wall time of that call (a group's time
 on every view's rows). With a refiner, ``{method}_*`` holds the refined poses and the refiner's
 masks and ``{method}-initial_*`` the object-generation poses of the same instances with their
@@ -39,15 +41,18 @@ class View:
     sensor: str | None = None
 
 
-def select_groups_and_objects(args, ds) -> tuple[list[tuple[View, ...]], dict]:
-    """The groups of views a run covers (one view each, except ``--targets multiview``) and
-    {obj_id: ObjectModel}, checked before any slow work.
+def select_groups_and_objects(args, ds) -> tuple[list[tuple[View, ...]], dict, dict | None]:
+    """The groups of views a run covers (one view each, except ``--targets multiview``),
+    {obj_id: ObjectModel}, and the objects queried in each image: {(scene_id, im_id): obj_ids},
+    or None when every image is queried with every object. Checked before any slow work.
 
-    Objects: ``--obj-ids`` if given, else the objects the targets file names for the selected
-    images (BOP19-style targets), else every object of ``models_info.json`` (BOP24-style and
-    multi-view targets and ``--targets all`` name images only). Objects outside that set are
-    never onboarded, so ``models_info.json`` may list objects whose meshes are absent; a
-    selected object without its mesh is an error naming it and the expected file.
+    Objects: ``--obj-ids`` if given (queried in every image), else the objects the targets file
+    names for the selected images (BOP19-style targets: the BOP 6D localisation task, where
+    which objects an image shows is given; each image is queried with its own), else every
+    object of ``models_info.json`` (BOP24-style and multi-view targets and ``--targets all``
+    name images only). Objects outside that set are never onboarded, so ``models_info.json``
+    may list objects whose meshes are absent; a selected object without its mesh is an error
+    naming it and the expected file.
     """
     from threept_jax.data.bop import MULTIVIEW_TARGETS_FILE
 
@@ -85,12 +90,17 @@ def select_groups_and_objects(args, ds) -> tuple[list[tuple[View, ...]], dict]:
     groups = groups[: args.max_images]
     if not groups:
         raise ValueError("no images selected (check --scene-ids, --obj-ids and --targets)")
+    queries = None
     if args.obj_ids:
         wanted = set(args.obj_ids)
     elif targets is not None and any(t.obj_id is not None for t in targets):
         chosen = {(g[0].scene_id, g[0].im_id) for g in groups}
-        wanted = {t.obj_id for t in targets
-                  if t.obj_id is not None and (t.scene_id, t.im_id) in chosen}
+        queries = {}
+        for t in targets:
+            if t.obj_id is not None and (t.scene_id, t.im_id) in chosen:
+                queries.setdefault((t.scene_id, t.im_id), set()).add(t.obj_id)
+        queries = {k: tuple(sorted(v)) for k, v in queries.items()}
+        wanted = {k for ids in queries.values() for k in ids}
     else:
         wanted = set(models)
     unknown = sorted(wanted - set(models))
@@ -103,7 +113,7 @@ def select_groups_and_objects(args, ds) -> tuple[list[tuple[View, ...]], dict]:
         raise FileNotFoundError(
             f"no mesh for target objects {missing} ({paths}); add the meshes, or pass --obj-ids "
             "with the objects to query")
-    return groups, {k: models[k] for k in sorted(wanted)}
+    return groups, {k: models[k] for k in sorted(wanted)}, queries
 
 
 def group_cameras(splits, group: tuple[View, ...], multiview: bool) -> list[Camera]:
@@ -269,7 +279,7 @@ def run_bop(args) -> dict:
         args.depth_range = tuple(cell["depth_range_mm"])
         print(f"depth range {args.depth_range[0]:.0f}-{args.depth_range[1]:.0f} mm from "
               f"{args.dataset_dir / bop.CELL_FILE} (--depth-range overrides it)", flush=True)
-    groups, models = select_groups_and_objects(args, ds)
+    groups, models, queries = select_groups_and_objects(args, ds)
     multiview = args.targets == "multiview"
     splits = functools.cache(lambda sensor: ds.split(args.split, sensor))  # scenes read once
     cameras = [group_cameras(splits, g, multiview) for g in groups]
@@ -289,7 +299,10 @@ def run_bop(args) -> dict:
                            cameras):
         images = [_rgb(splits(v.sensor).scene(v.scene_id).image(v.im_id)) for v in group]
         start = time.perf_counter()
-        instances = run_scene(images, cams, objects, nets, with_masks=True,
+        queried = (objects if queries is None else
+                   [o for o in objects
+                    if o.obj_id in queries.get((group[0].scene_id, group[0].im_id), ())])
+        instances = run_scene(images, cams, queried, nets, with_masks=True,
                               **detector_options(args))
         elapsed = time.perf_counter() - start
         Ks = [c.K for c in cams]

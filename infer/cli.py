@@ -47,7 +47,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--dataset-dir", type=pathlib.Path, required=True)
     b.add_argument("--split", default="test")
     b.add_argument("--targets", default="bop24", choices=("bop24", "bop19", "all", "multiview"),
-                   help="which images: a test_targets file, every image of the split, or "
+                   help="which images: a test_targets file (bop19: each image queried with "
+                        "the objects its targets name, unless --obj-ids), every image of the "
+                        "split, or "
                         "multiview: the groups of test_targets_multiview_bop25.json, each group "
                         "one multi-view run_scene (cameras from cam_R_w2c/cam_t_w2c); an "
                         "instance is written to a view's rows when its centre projects inside "

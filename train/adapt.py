@@ -274,15 +274,17 @@ def max_detections(instances: int) -> int:
 
 def infer_bop(workdir: pathlib.Path, dataset: pathlib.Path, out: pathlib.Path, cache: pathlib.Path,
               max_detections: int, overlays: int = 0, overlay_threshold: float | None = None,
-              refiner: pathlib.Path | None = None, obj_ids: Sequence[int] = ()) -> dict:
+              refiner: pathlib.Path | None = None, obj_ids: Sequence[int] = (),
+              targets: str = "all") -> dict:
     """``python -m infer bop --evaluate`` of the best detector checkpoint of ``workdir`` (and
     of ``refiner``'s best checkpoint when given) on ``dataset``'s ``val_pbr`` images, the
     ``max_detections`` best detections of an image whatever their score; every object of the
-    dataset queried, or ``obj_ids``."""
+    dataset queried, or ``obj_ids``; ``targets="bop19"``: each image queried with the objects
+    of its BOP19 targets."""
     from infer.cli import main as infer_main
 
     argv = ["bop", "--workdir", str(workdir), "--step", "best", "--dataset-dir", str(dataset),
-            "--split", "val_pbr", "--targets", "all", "--evaluate", "--num-templates", "512",
+            "--split", "val_pbr", "--targets", targets, "--evaluate", "--num-templates", "512",
             "--score-threshold", "0", "--max-detections", str(max_detections),
             "--out", str(out), "--overlays", str(overlays), "--cache-dir", str(cache)]
     if overlay_threshold is not None:

@@ -110,6 +110,38 @@ def test_images_without_detections_are_reported(dataset, monkeypatch, capsys):
     assert np.any(overlay != 90)  # the caption; the input is a flat grey
 
 
+def test_bop19_targets_query_each_image_with_its_own_objects(dataset, monkeypatch):
+    """Image 0's targets are objects 1 and 2, image 1's object 2 alone: each image is queried
+    with its own (the BOP 6D localisation task); ``--obj-ids`` queries every image with all."""
+    scene = dataset / "test" / "000001"
+    cv2.imwrite(str(scene / "rgb" / "000001.png"), np.full((48, 64, 3), 90, np.uint8))
+    cams = json.loads((scene / "scene_camera.json").read_text())
+    (scene / "scene_camera.json").write_text(json.dumps({**cams, "1": cams["0"]}))
+    (dataset / "test_targets_bop19.json").write_text(json.dumps(
+        [{"scene_id": 1, "im_id": 0, "obj_id": k, "inst_count": 1} for k in (1, 2)]
+        + [{"scene_id": 1, "im_id": 1, "obj_id": 2, "inst_count": 1}]))
+
+    class FakeNets:
+        refiner = None
+
+        def onboard(self, meshes):
+            return [type("Onboarded", (), {"obj_id": k})() for k in meshes]
+
+    queried = []
+
+    def fake_run_scene(images, cams, objects, nets, **kw):
+        queried.append([o.obj_id for o in objects])
+        return Instances([], best_score=0.0)
+
+    monkeypatch.setattr(bop_runner, "load_models", lambda args, detector=True: FakeNets())
+    monkeypatch.setattr(bop_runner, "run_scene", fake_run_scene)
+    main(_argv(dataset, "--targets", "bop19"))
+    assert queried == [[1, 2], [2]]
+    queried.clear()
+    main(_argv(dataset, "--targets", "bop19", "--obj-ids", "1", "2"))
+    assert queried == [[1, 2], [1, 2]]
+
+
 # --------------------------------------------------------------------------- through run_scene
 # One module-scoped dataset and one pair of untrained tiny runs (detector, refiner): every test
 # below refines 3 instances of objects {1, 2} in one 64 x 96 view, so one compiled refinement
