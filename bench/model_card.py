@@ -38,6 +38,9 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from infer.shipped import shipped  # noqa: E402
+from threept_jax.data import bop  # noqa: E402
+from threept_jax.data.bop import write_targets  # noqa: E402
+from threept_jax.eval.bop6d import gt_targets  # noqa: E402
 from train import adapt  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "meshes" / "bop"
@@ -99,27 +102,6 @@ def covered(dataset: pathlib.Path, results: pathlib.Path) -> tuple[float, float]
     return float(np.mean(any_obj)), float(np.mean(own))
 
 
-def write_bop19_targets(dataset: pathlib.Path) -> pathlib.Path:
-    """``dataset/test_targets_bop19.json`` from its ``val_pbr`` ground truth: per image, each
-    object with its instances at least 10 % visible (the BOP toolkit's rule)."""
-    from threept_jax.data.bop.models import Target, write_targets
-
-    targets = []
-    for scene in sorted((dataset / "val_pbr").glob("*/scene_gt.json")):
-        sid = int(scene.parent.name)
-        gt, info = json.loads(scene.read_text()), json.loads(
-            (scene.parent / "scene_gt_info.json").read_text())
-        for im, entries in gt.items():
-            counts: dict[int, int] = {}
-            for e, i in zip(entries, info[im]):
-                if i["visib_fract"] >= 0.1:
-                    counts[int(e["obj_id"])] = counts.get(int(e["obj_id"]), 0) + 1
-            targets += [Target(sid, int(im), k, n) for k, n in sorted(counts.items())]
-    path = dataset / "test_targets_bop19.json"
-    write_targets(path, targets)
-    return path
-
-
 def results_json(out: pathlib.Path) -> pathlib.Path:
     """The 2D results ``python -m infer bop`` wrote in ``out`` (after refinement when refined)."""
     return next(out.glob("threept_*-val_pbr.json"))
@@ -166,7 +148,7 @@ def main(argv=None) -> dict:
     results["procedural"] = {**figs, "parts": len(ids), "seconds": seconds,
                              "covered_any": hit_any, "covered_own": hit_own}
 
-    write_bop19_targets(cell)
+    write_targets(cell / "test_targets_bop19.json", gt_targets(bop.BopDataset(cell).split("val_pbr")))
     print("\n== 1b. the same images, each queried with the parts it shows (BOP19 targets)")
     start = time.perf_counter()
     figs = adapt.figures(adapt.infer_bop(detector, cell, args.out / "procedural_targets", cache,

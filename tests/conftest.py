@@ -34,6 +34,7 @@ SLOW_FIRST = (
     "tests/train/test_cluster.py", "tests/infer/test_refine_api.py",
     "tests/pipeline/test_refinement.py", "tests/train/test_resume.py",
     "tests/infer/test_track_cli.py", "tests/infer/test_bop_runner.py",
+    "tests/infer/test_shipped_guard.py",
 )
 
 

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from threept_jax.data import bop
 from threept_jax.data.ply import load_ply_vertices
-from threept_jax.eval.bop6d import ImageGt, average_precision_101, evaluate_poses
+from threept_jax.eval.bop6d import ImageGt, average_precision_101, evaluate_poses, gt_targets
 from threept_jax.eval.bop_eval import evaluate_pose_results, load_image_gts
 from threept_jax.eval.pose_error import prepare_model
 from threept_jax.geometry.symmetry import Symmetries
@@ -158,6 +158,20 @@ def test_localisation_uses_the_most_visible_instances(itodd):
     assert s.ar_mssd == 0.0 and s.ap == pytest.approx(51 / 101)
     s = _run(models, [(3, T1), (3, T2)], [_est(T1, 0.9)], visib=[0.9, 0.5], targets19=t19)
     assert s.ar_mssd == 1.0 and s.ar_mspd == 1.0
+
+
+def test_targets_from_the_ground_truth_count_instances_at_least_10_percent_visible(tmp_path, itodd):
+    """By hand: image 0 shows object 1 twice (50 % and 2 % visible) and object 3 once (90 %):
+    targets (1, 1 instance) and (3, 1); image 1 shows object 3 at 3 % only: no target."""
+    pose = _pose(0, 0, 800, seed=2)
+    root = write_synthetic_dataset(
+        tmp_path / "ds", {1: itodd[1], 3: itodd[3]},
+        {1: {0: [SyntheticInstance(1, pose, 0.5), SyntheticInstance(1, pose, 0.02),
+                 SyntheticInstance(3, pose, 0.9)],
+             1: [SyntheticInstance(3, pose, 0.03)]}}, K, write_images=False)
+    targets = gt_targets(bop.BopDataset(root).split("test"))
+    assert [(t.scene_id, t.im_id, t.obj_id, t.inst_count) for t in targets] == [
+        (1, 0, 1, 1), (1, 0, 3, 1)]
 
 
 def _reference_ap(rec, pre):

@@ -57,6 +57,8 @@ __all__ = [
     "MSPD_THRESHOLDS",
     "MSSD_MM_THRESHOLDS",
     "VISIB_GT_MIN",
+    "gt_targets",
+    "visible_counts",
 ]
 
 MSSD_THRESHOLDS = np.arange(0.05, 0.51, 0.05)  # x diameter
@@ -64,6 +66,29 @@ MSPD_THRESHOLDS = np.arange(5, 51, 5)  # px at 640 px image width
 MSSD_MM_THRESHOLDS = np.array(list(range(2, 21, 2)))  # mm
 VISIB_GT_MIN = 0.1
 MSPD_REFERENCE_WIDTH = 640.0
+
+
+def visible_counts(gts: Sequence[GtInstance], infos: Sequence[GtInfo]) -> dict[int, int]:
+    """{obj_id: its instances with ``visib_fract >= VISIB_GT_MIN``} of one image: the
+    localisation targets the ground truth gives (module docstring)."""
+    counts: dict[int, int] = {}
+    for g, info in zip(gts, infos):
+        if info.visib_fract >= VISIB_GT_MIN:
+            counts[g.obj_id] = counts.get(g.obj_id, 0) + 1
+    return counts
+
+
+def gt_targets(split) -> list[Target]:
+    """BOP19-style targets of a split (``threept_jax.data.bop.BopSplit``) derived from its
+    ground truth by :func:`visible_counts`, for a dataset without ``test_targets_bop19.json``
+    (write them with ``threept_jax.data.bop.write_targets``)."""
+    out = []
+    for sid in split.scene_ids:
+        scene = split.scene(sid)
+        for im_id in scene.image_ids:
+            counts = visible_counts(scene.gt_as_stored.get(im_id, []), scene.gt_info.get(im_id, []))
+            out += [Target(sid, im_id, o, c) for o, c in sorted(counts.items())]
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -229,10 +254,7 @@ def evaluate_poses(
         if localization_targets is None:
             localization_targets = []
             for key in det_images:
-                counts: dict[int, int] = {}
-                for g, info in zip(images[key].gts, images[key].infos):
-                    if info.visib_fract >= VISIB_GT_MIN:
-                        counts[g.obj_id] = counts.get(g.obj_id, 0) + 1
+                counts = visible_counts(images[key].gts, images[key].infos)
                 localization_targets += [Target(key[0], key[1], o, c) for o, c in counts.items()]
         all_by_iobj: dict[tuple[int, int, int], list[int]] = {}
         for i, e in enumerate(est_list):
