@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 from infer.shipped import shipped  # noqa: E402
 from threept_jax.data import bop  # noqa: E402
 from threept_jax.data.bop import write_targets  # noqa: E402
-from threept_jax.eval.bop6d import gt_targets  # noqa: E402
+from threept_jax.eval.bop6d import gt_coverage, gt_targets  # noqa: E402
 from train import adapt  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "meshes" / "bop"
@@ -75,31 +75,11 @@ def heldout_ids(dataset: pathlib.Path) -> list[int]:
 
 def covered(dataset: pathlib.Path, results: pathlib.Path) -> tuple[float, float]:
     """(share of GT instances >= 10 % visible covered at IoU >= 0.5 by a detection of any
-    object, by a detection of their own object) over ``dataset``'s ``val_pbr`` images."""
-    import numpy as np
-
-    def iou(a, b):
-        ix = max(0.0, min(a[0] + a[2], b[0] + b[2]) - max(a[0], b[0]))
-        iy = max(0.0, min(a[1] + a[3], b[1] + b[3]) - max(a[1], b[1]))
-        return ix * iy / (a[2] * a[3] + b[2] * b[3] - ix * iy)
-
-    dets: dict = {}
-    for d in json.loads(results.read_text()):
-        dets.setdefault((d["scene_id"], d["image_id"]), []).append(d)
-    any_obj, own = [], []
-    for scene in sorted((dataset / "val_pbr").glob("*/scene_gt.json")):
-        sid = int(scene.parent.name)
-        gt, info = json.loads(scene.read_text()), json.loads(
-            (scene.parent / "scene_gt_info.json").read_text())
-        for im, entries in gt.items():
-            for e, i in zip(entries, info[im]):
-                if i["visib_fract"] < 0.1:
-                    continue
-                hits = [d for d in dets.get((sid, int(im)), [])
-                        if iou(d["bbox"], i["bbox_obj"]) >= 0.5]
-                any_obj.append(bool(hits))
-                own.append(any(d["category_id"] == e["obj_id"] for d in hits))
-    return float(np.mean(any_obj)), float(np.mean(own))
+    object, by a detection of their own object) over ``dataset``'s ``val_pbr`` images
+    (``threept_jax.eval.bop6d.gt_coverage``)."""
+    hit_any, hit_own, total = gt_coverage(bop.BopDataset(dataset).split("val_pbr"),
+                                          json.loads(results.read_text()))
+    return hit_any / max(total, 1), hit_own / max(total, 1)
 
 
 def results_json(out: pathlib.Path) -> pathlib.Path:

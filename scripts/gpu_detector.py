@@ -1,4 +1,4 @@
-"""How ``models/detector-gpu`` was trained: the campaign's data, carried to a lent GPU machine.
+"""The campaign's detector trained on a lent GPU machine (docs/training.md: the H100 run).
 
 The campaign (``python -m train.campaign``) makes its data on this machine (Mitsuba, 2 cores,
 about an hour) and trains where it made it. A lent GPU machine has no Mitsuba, no network and
@@ -9,11 +9,11 @@ the minutes it is given:
 
     # here, after the campaign's data stage
     python scripts/gpu_detector.py subset --records runs/campaign/records --out .gpu/records \\
-        --images 800 --quality 75
+        --images 1000 --quality 75
     # on the GPU machine (its own jax), with the wheels of the missing packages installed
     python scripts/gpu_detector.py train --records .gpu/records --workdir /tmp/w \\
         --minutes 6 --batch-size 64 --workers 12
-    # here: python -m train.export --run W/detector --out models/detector-gpu
+    # here: python bench/model_card.py --campaign runs/campaign --detector RUN
 """
 
 from __future__ import annotations

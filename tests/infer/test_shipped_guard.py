@@ -8,7 +8,7 @@ campaign (``campaign.json``: procedural parts the detector never trained on), re
 their seed (the same images byte for byte on every machine); each image is queried with the
 parts it shows (its BOP19 targets from the ground truth), through ``python -m infer bop`` as a
 user runs it. The figure is the number of ground-truth instances (at least 10 % visible) that a
-detection of their own part covers at box IoU >= 0.5 (``threept_jax.geometry.boxes.box_iou``).
+detection of their own part covers at box IoU >= 0.5 (``threept_jax.eval.bop6d.gt_coverage``).
 
 Measured by this test's code on these 6 scenes (42 such instances; ``python
 bench/model_card.py`` setting 1b gives the same kind of figure on all 32 held-out images): the
@@ -19,13 +19,10 @@ shipped count, so a few detections changed by another machine's floats do not ma
 
 import json
 
-import numpy as np
-
 from datagen import generate
 from infer.shipped import shipped
 from threept_jax.data import bop
-from threept_jax.eval.bop6d import VISIB_GT_MIN, gt_targets
-from threept_jax.geometry.boxes import box_iou
+from threept_jax.eval.bop6d import gt_coverage, gt_targets
 from train import adapt, campaign
 
 #: Held-out cell scenes (one image each) of the campaign remade by the test.
@@ -34,32 +31,6 @@ SCENES = 6
 SHIPPED_HITS = 9
 #: The guard's floor.
 FLOOR = 4
-
-
-def own_part_hits(dataset, results) -> tuple[int, int]:
-    """(ground-truth instances at least VISIB_GT_MIN visible that a detection of their own
-    object covers at box IoU >= 0.5, such instances) over ``dataset``'s ``val_pbr``."""
-    split = bop.BopDataset(dataset).split("val_pbr")
-    dets: dict = {}
-    for d in results:
-        x, y, w, h = d["bbox"]
-        dets.setdefault((d["scene_id"], d["image_id"], d["category_id"]), []).append(
-            [x, y, x + w, y + h])
-    hits = total = 0
-    for sid in split.scene_ids:
-        scene = split.scene(sid)
-        for im_id in scene.image_ids:
-            for g, info in zip(scene.gt_as_stored[im_id], scene.gt_info[im_id], strict=True):
-                if info.visib_fract < VISIB_GT_MIN:
-                    continue
-                total += 1
-                boxes = dets.get((sid, im_id, g.obj_id))
-                if boxes:
-                    x, y, w, h = info.bbox_obj
-                    iou = np.asarray(box_iou(np.array([[x, y, x + w, y + h]], np.float32),
-                                             np.array(boxes, np.float32)))
-                    hits += bool((iou >= 0.5).any())
-    return hits, total
 
 
 def test_the_shipped_detector_finds_held_out_parts(tmp_path):
@@ -72,7 +43,7 @@ def test_the_shipped_detector_finds_held_out_parts(tmp_path):
     adapt.infer_bop(model, dataset, tmp_path / "out", tmp_path / "cache",
                     adapt.max_detections(plan["data"]["instances"]), targets="bop19")
     results = json.loads(next((tmp_path / "out").glob("threept_*-val_pbr.json")).read_text())
-    hits, total = own_part_hits(dataset, results)
+    _, hits, total = gt_coverage(bop.BopDataset(dataset).split("val_pbr"), results)
     assert total == 42  # the remade scenes are the campaign's
     assert hits >= FLOOR, (
         f"the shipped detector covers {hits} of {total} held-out instances with its own part "

@@ -57,6 +57,7 @@ __all__ = [
     "MSPD_THRESHOLDS",
     "MSSD_MM_THRESHOLDS",
     "VISIB_GT_MIN",
+    "gt_coverage",
     "gt_targets",
     "visible_counts",
 ]
@@ -89,6 +90,39 @@ def gt_targets(split) -> list[Target]:
             counts = visible_counts(scene.gt_as_stored.get(im_id, []), scene.gt_info.get(im_id, []))
             out += [Target(sid, im_id, o, c) for o, c in sorted(counts.items())]
     return out
+
+
+def gt_coverage(split, results: Sequence[Mapping]) -> tuple[int, int, int]:
+    """A detection diagnostic, not a BOP metric: (ground-truth instances at least
+    ``VISIB_GT_MIN`` visible that some detection covers at box IoU >= 0.5 whatever its object,
+    those that a detection of their own object covers, such instances) over a split
+    (``threept_jax.data.bop.BopSplit``) and BOP 2D results (``scene_id``, ``image_id``,
+    ``category_id``, ``bbox`` [x, y, w, h])."""
+    from threept_jax.geometry.boxes import box_iou
+
+    def xyxy(b):
+        return [b[0], b[1], b[0] + b[2], b[1] + b[3]]
+
+    dets: dict = {}
+    for d in results:
+        dets.setdefault((d["scene_id"], d["image_id"]), []).append(d)
+    hit_any = hit_own = total = 0
+    for sid in split.scene_ids:
+        scene = split.scene(sid)
+        for im_id in scene.image_ids:
+            found = dets.get((sid, im_id), [])
+            boxes = np.array([xyxy(d["bbox"]) for d in found], np.float32).reshape(-1, 4)
+            for g, info in zip(scene.gt_as_stored[im_id], scene.gt_info[im_id]):
+                if info.visib_fract < VISIB_GT_MIN:
+                    continue
+                total += 1
+                if not found:
+                    continue
+                iou = np.asarray(box_iou(np.array([xyxy(info.bbox_obj)], np.float32), boxes))[0]
+                hit_any += bool((iou >= 0.5).any())
+                hit_own += any(iou[i] >= 0.5 and d["category_id"] == g.obj_id
+                               for i, d in enumerate(found))
+    return hit_any, hit_own, total
 
 
 @dataclass(frozen=True, eq=False)
