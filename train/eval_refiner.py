@@ -10,7 +10,10 @@ Metrics (all over valid instances; medians and shares over instances x hypothese
 
 * ``eval/match_within_2px``: share of the step's reciprocal edge matches (weight 1, first
   step) whose real pixel (crop frame) lies within 2 crop pixels of the projection of the
-  match's 3D point by the ground-truth pose; ``eval/matches_per_pair``.
+  match's 3D point by the ground-truth pose; ``eval/match_within_2px_same_place``: the same
+  share had every render pixel been matched to the real pixel at the same place (a network
+  that has learnt only where a pixel is reaches it: the baseline to beat);
+  ``eval/matches_per_pair``.
 * ``eval/rot_deg_{before,after_1,after_N}``: median rotation error, symmetry-aware
   (min over the object's symmetries, ``geometry.symmetry.symmetric_angle_deg``), in degrees;
   ``eval/trans_mm_...``: median ``|t_est - t_gt|`` (mm); ``eval/ar_mssd_...``: BOP's MSSD
@@ -21,10 +24,12 @@ Metrics (all over valid instances; medians and shares over instances x hypothese
 * ``eval/ar_mssd_top_before`` / ``eval/ar_mssd_top_after``: the same for the one hypothesis
   per instance that the network's score picks (what inference keeps), before refinement (the
   gain of selection alone) and after N steps.
-* ``eval/score_acc``: how often the top-scored of the J hypotheses has the lowest MSSD after
-  one step (chance: 1 / J).
+* ``eval/score_acc``: how often the top-scored of the J hypotheses is the classification
+  target: the lowest MSSD after one step, each hypothesis keeping its start where the step
+  made it worse (``train.refiner_objective.kept_errors``; chance: 1 / J).
 * ``eval/mask_iou``, ``eval/matching_loss``, ``eval/matching_within_2px_map`` (the dense
-  argmax of the matching loss, in map pixels: a diagnostic), ``eval/classification_loss``.
+  argmax of the matching loss, in map pixels: a diagnostic) and its position-only baseline
+  ``eval/matching_within_2px_map_same_place``, ``eval/classification_loss``.
 * ``eval/num_instances``; ``eval/unseen_share``: share of the evaluated instances whose mesh
   (by content) is not among the objects of the training split (:func:`training_digests`),
   1.0 for a truly held-out set.
@@ -52,6 +57,7 @@ from train.refiner_objective import (
     STEP_FIELDS,
     RefinerAssets,
     gt_cam_obj,
+    kept_errors,
     objective,
     pose_errors,
     refine_batch,
@@ -88,21 +94,34 @@ def average_recall(errors: np.ndarray, diameters: np.ndarray) -> float:
     return float(np.mean(e[None] < MSSD_THRESHOLDS[:, None] * diameters[None]))
 
 
-def match_accuracy(matches, crop_K: jax.Array, T_cam_obj_gt: jax.Array):
-    """(within [B], total [B]): weighted matches within 2 crop pixels of the ground truth.
+def match_accuracy(matches, crop_K: jax.Array, T_cam_obj_gt: jax.Array, *, crop_size: int,
+                   map_size: int):
+    """(within [B], within_identity [B], total [B]): weighted matches within 2 crop pixels of
+    the ground truth, and how many would be if each render pixel were matched to the real
+    pixel at the same place (the position-only baseline, which a network that has learnt
+    nothing but where a pixel is reaches).
 
     matches: :class:`~threept_jax.pipeline.refinement.Matches` with leading [B, J, V];
-    crop_K [B, V, 3, 3]; T_cam_obj_gt [B, V, 4, 4].
+    crop_K [B, V, 3, 3]; T_cam_obj_gt [B, V, 4, 4]; crop_size: H = W of the crops; map_size:
+    h = w of the descriptor map.
     """
     X = matches.points_3d  # [B, J, V, N, 3]
     R, t = T_cam_obj_gt[:, None, :, None, :3, :3], T_cam_obj_gt[:, None, :, None, :3, 3]
     p = jnp.einsum("bjvnik,bjvnk->bjvni", jnp.broadcast_to(R, X.shape[:-1] + (3, 3)), X) + t
     uvw = jnp.einsum("bvik,bjvnk->bjvni", crop_K, p)
     uv = uvw[..., :2] / jnp.where(uvw[..., 2:] > 0, uvw[..., 2:], 1.0)
-    ok = (jnp.sum(jnp.square(uv - matches.points_2d), -1) <= WITHIN_PX**2) & (uvw[..., 2] > 0)
+    # The render pixel's centre in crop pixels (the map's pixel-centre rule).
+    r = matches.render_pixel
+    scale = crop_size / map_size
+    same_place = jnp.stack([(r % map_size + 0.5) * scale - 0.5,
+                            (r // map_size + 0.5) * scale - 0.5], -1)
+
+    def near(q):
+        return (jnp.sum(jnp.square(uv - q), -1) <= WITHIN_PX**2) & (uvw[..., 2] > 0)
+
     w = matches.weights > 0
-    return (jnp.sum(ok & w, axis=(1, 2, 3)).astype(jnp.float32),
-            jnp.sum(w, axis=(1, 2, 3)).astype(jnp.float32))
+    count = lambda m: jnp.sum(m & w, axis=(1, 2, 3)).astype(jnp.float32)  # noqa: E731
+    return count(near(matches.points_2d)), count(near(same_place)), count(jnp.ones_like(w))
 
 
 class RefinerEvaluator:
@@ -139,8 +158,9 @@ class RefinerEvaluator:
             rend = render_batch(assets, batch, **sizes)
             out = model(batch["crops"], rend.rgb)
             _, metrics, step = objective(out, rend, assets, batch, loss_cfg, settings)
-            within, total = match_accuracy(step.matches, batch["crop_K"].astype(jnp.float32),
-                                           gt_cam_obj(batch))
+            within, same_place, total = match_accuracy(
+                step.matches, batch["crop_K"].astype(jnp.float32), gt_cam_obj(batch),
+                crop_size=model_cfg.crop_size, map_size=model_cfg.output_size)
             poses = batch["hypotheses"].astype(jnp.float32)
             after_1 = h = step.hypotheses
             for _ in range(num_steps - 1):
@@ -151,7 +171,8 @@ class RefinerEvaluator:
                 "poses": jnp.stack([poses, after_1, h], 1),  # [B, 3, J, 4, 4]
                 "mssd": jnp.stack([pose_errors(assets, batch, x) for x in (poses, after_1, h)],
                                   1),
-                "scores": out["scores"], "within": within, "total": total,
+                "scores": out["scores"], "within": within, "same_place": same_place,
+                "total": total,
                 "num_pairs": jnp.full(within.shape, np.prod(rend.mask.shape[1:3]), jnp.float32),
                 **{k: jnp.full(within.shape, v) for k, v in metrics.items()},
             }
@@ -209,15 +230,18 @@ def summarize(r: Mapping[str, np.ndarray], *, num_steps: int,
     top = np.argmax(r["scores"][keep], axis=1)
     out["eval/ar_mssd_top_before"] = average_recall(mssd[np.arange(n), 0, top], diam)
     out["eval/ar_mssd_top_after"] = average_recall(mssd[np.arange(n), -1, top], diam)
-    after_1 = np.where(np.isfinite(mssd[:, 1]), mssd[:, 1], np.inf)
-    out["eval/score_acc"] = float(np.mean(top == np.argmin(after_1, axis=1)))
+    target = np.argmin(np.asarray(kept_errors(mssd[:, 0], mssd[:, 1])), axis=1)
+    out["eval/score_acc"] = float(np.mean(top == target))
     out["eval/match_within_2px"] = float(r["within"][keep].sum()
                                          / max(r["total"][keep].sum(), 1.0))
+    out["eval/match_within_2px_same_place"] = float(r["same_place"][keep].sum()
+                                                    / max(r["total"][keep].sum(), 1.0))
     out["eval/matches_per_pair"] = float(r["total"][keep].sum() / r["num_pairs"][keep].sum())
     # The objective's batch means, copied to every row: the mean over valid rows weights each
     # batch by its valid instances.
     for src, name in (("matching/loss", "matching_loss"),
                       ("matching/within_2px", "matching_within_2px_map"),
+                      ("matching/within_2px_same_place", "matching_within_2px_map_same_place"),
                       ("classification/loss", "classification_loss"),
                       ("segmentation/iou", "mask_iou")):
         out[f"eval/{name}"] = float(np.mean(r[src][keep]))

@@ -13,7 +13,10 @@ fields, B instances, J hypotheses, V views):
 3. **Losses** (:mod:`threept_jax.losses.refiner`): matching (eq. (1)) over every (hypothesis,
    view) pair against the ground-truth pose; segmentation of the real crop's visible mask
    under every hypothesis; classification of the J scores, whose target is the hypothesis with
-   the lowest MSSD after one refinement step: the step's matching and PnP
+   the lowest MSSD after one refinement step, each hypothesis keeping its start where the step
+   made it worse (:func:`kept_errors`; the inference loop keeps the start when the refined
+   pose scores lower, and a target that follows a step that moves poses at random would be
+   noise): the step's matching and PnP
    (:func:`~threept_jax.pipeline.refinement.update_hypotheses`, the function inference runs)
    applied to the same forward pass under ``stop_gradient``.
 
@@ -124,6 +127,14 @@ def pose_errors(assets: RefinerAssets, batch: Mapping[str, Array], poses: Array)
                                  batch["symmetries"], batch["symmetry_mask"])
 
 
+def kept_errors(before: Array, after: Array) -> Array:
+    """The error [B, J] each hypothesis ends with when the better of its start and its refined
+    pose is kept, as the inference loop keeps its start when refinement scores lower: the
+    classification target's error. A non-finite ``after`` (a failed step) keeps ``before``."""
+    after = jnp.where(jnp.isfinite(after), after, jnp.inf)
+    return jnp.minimum(before, after)
+
+
 def objective(outputs: Mapping[str, Array], rend: Renders, assets: RefinerAssets,
               batch: Mapping[str, Array], loss_cfg: RefinerLossConfig,
               settings: RefineSettings) -> tuple[Array, dict[str, Array], RefineResult]:
@@ -144,12 +155,12 @@ def objective(outputs: Mapping[str, Array], rend: Renders, assets: RefinerAssets
                         settings)
     step = jax.lax.stop_gradient(step)
     after = pose_errors(assets, batch, step.hypotheses)
-    c_loss, c_metrics = classification_loss(outputs["scores"], after, valid)
+    before = jax.lax.stop_gradient(pose_errors(assets, batch, hyps))
+    c_loss, c_metrics = classification_loss(outputs["scores"], kept_errors(before, after), valid)
 
     total = (loss_cfg.matching_weight * m_loss + loss_cfg.segmentation_weight * s_loss
              + loss_cfg.classification_weight * c_loss)
     n = jnp.maximum(jnp.sum(valid), 1).astype(jnp.float32)
-    before = jax.lax.stop_gradient(pose_errors(assets, batch, hyps))
     mean_valid = lambda e: jnp.sum(jnp.where(valid[:, None], e, 0.0)) / (n * e.shape[1])  # noqa: E731
     metrics = {"loss": total, "num_valid": jnp.sum(valid).astype(jnp.float32),
                "mssd_before": mean_valid(before),

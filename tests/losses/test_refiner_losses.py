@@ -109,6 +109,21 @@ def test_matching_within_2px_radius():
         assert float(m["within_2px"]) == within
 
 
+def test_matching_same_place_baseline_by_hand():
+    # Every render point is (0, 0, 1), which identity K and T put at real pixel (0, 0). Render
+    # pixel (0, 0) is at its target, (0, 2) 2 px from it (in), (2, 2) 2.83 px (out); the
+    # descriptors play no part.
+    real = np.eye(9, dtype=np.float32).reshape(3, 3, 9)
+    xyz = np.zeros((3, 3, 3), np.float32)
+    xyz[..., 2] = 1.0
+    vis = np.ones((3, 3), bool)
+    for pixel, same_place in (((0, 0), 1.0), ((0, 2), 1.0), ((2, 2), 0.0)):
+        rmask = np.zeros((3, 3), bool)
+        rmask[pixel] = True
+        _, m = jax.jit(matching_loss)(real, real, xyz, rmask, EYE4, EYE3, vis)
+        assert float(m["within_2px_same_place"]) == same_place
+
+
 def _rotation(rng):
     q, r = np.linalg.qr(rng.normal(size=(3, 3)))
     q = q * np.sign(np.diag(r))
@@ -262,7 +277,7 @@ def test_matching_no_valid_pixel_gives_zero_and_finite_gradients():
         real.astype(np.float32), render.astype(np.float32))
     assert float(loss) == 0.0
     assert {k: float(v) for k, v in m.items()} == {"loss": 0.0, "num_valid": 0.0, "top1": 0.0,
-                                                   "within_2px": 0.0}
+                                                   "within_2px": 0.0, "within_2px_same_place": 0.0}
     for g in grads:
         assert np.all(np.asarray(g) == 0.0)
 

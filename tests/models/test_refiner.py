@@ -94,6 +94,34 @@ def test_real_crops_and_renders_share_one_encoder_and_decoder(model, inputs):
     assert np.abs(np.asarray(out["render_desc"][:, 1] - out["real_desc"][:, 1])).max() > 0.1
 
 
+def test_conditioned_levels_and_pixel_stem_keep_hypotheses_apart_and_streams_siamese(inputs):
+    """The lever options (every DPT level of the real crop read from the cross-attention
+    output, a pixel stem): hypothesis k's outputs still depend on its render alone, and with
+    the cross-attention branches off an identical render still gets the real crop's
+    descriptors exactly."""
+    cfg = get_refiner_config("tiny", conditioned_levels=4, pixel_features=8)
+    model = Refiner(cfg, rngs=nnx.Rngs(0))
+    real, renders = inputs
+    other = renders.copy()
+    other[:, 1] = np.random.default_rng(1).uniform(size=other[:, 1].shape)
+    a, b = model(real, renders), model(real, other)
+    for key in a:
+        np.testing.assert_allclose(np.asarray(b[key])[:, [0, 2]], np.asarray(a[key])[:, [0, 2]],
+                                   atol=1e-6, err_msg=key)
+        assert np.abs(np.asarray(b[key])[:, 1] - np.asarray(a[key])[:, 1]).max() > 1e-4, key
+    for block in model.cross_blocks:
+        for ls in (block.ls1, block.ls2, block.ls3):
+            ls.gamma[...] = jnp.zeros_like(ls.gamma[...])
+    same = renders.copy()
+    same[:, 0] = real / 255.0
+    out = model(real, same)
+    np.testing.assert_allclose(out["render_desc"][:, 0], out["real_desc"][:, 0], atol=1e-5)
+    with pytest.raises(ValueError, match="conditioned_levels must be 1 to 4"):
+        get_refiner_config("tiny", conditioned_levels=5)
+    with pytest.raises(ValueError, match="pixel_features must be >= 0"):
+        get_refiner_config("tiny", pixel_features=-1)
+
+
 def test_input_errors_name_the_expected_shapes(model, inputs):
     real, renders = inputs
     with pytest.raises(ValueError, match=r"real crops must be \[B, V, 64, 64, 3\]"):

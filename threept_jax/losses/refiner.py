@@ -99,9 +99,14 @@ def _pair_sums(w: int, temperature, args) -> Array:
     dj = (best % w - index % w).astype(jnp.float32)
     top1 = best == index
     near = di * di + dj * dj <= WITHIN_PX * WITHIN_PX
+    own = jnp.arange(index.shape[0])  # each render pixel's own place in the real map
+    si = (own // w - index // w).astype(jnp.float32)
+    sj = (own % w - index % w).astype(jnp.float32)
+    same_place = si * si + sj * sj <= WITHIN_PX * WITHIN_PX
     return jnp.stack([jnp.sum(jnp.where(valid, nll, 0.0)),
                       jnp.sum(valid & top1).astype(jnp.float32),
-                      jnp.sum(valid & near).astype(jnp.float32)])
+                      jnp.sum(valid & near).astype(jnp.float32),
+                      jnp.sum(valid & same_place).astype(jnp.float32)])
 
 
 def matching_loss(real_desc: Array, render_desc: Array, render_xyz: Array, render_mask: Array,
@@ -131,7 +136,10 @@ def matching_loss(real_desc: Array, render_desc: Array, render_xyz: Array, rende
 
     Metrics: ``loss``; ``num_valid`` (valid render pixels); ``top1`` (share of valid render
     pixels whose argmax real pixel is the ground-truth one); ``within_2px`` (share whose argmax
-    is within 2 map pixels, Euclidean, of it). Shares are 0 with no valid pixel.
+    is within 2 map pixels, Euclidean, of it); ``within_2px_same_place`` (share whose
+    ground-truth pixel is within 2 map pixels of the render pixel's own place: what matching
+    by position alone reaches, the baseline ``within_2px`` must beat for the descriptors to
+    carry more than where a pixel is). Shares are 0 with no valid pixel.
 
     Memory: the logits of one pair are [h*w, h*w] float32 (64 x 64 maps: 16.8M entries,
     64 MiB). Pairs are processed one after another (``lax.map``) with the pair's matrix
@@ -175,7 +183,7 @@ def matching_loss(real_desc: Array, render_desc: Array, render_xyz: Array, rende
     denom = jnp.maximum(count, 1.0)
     loss = total[0] / denom
     return loss, {"loss": loss, "num_valid": count, "top1": total[1] / denom,
-                  "within_2px": total[2] / denom}
+                  "within_2px": total[2] / denom, "within_2px_same_place": total[3] / denom}
 
 
 def classification_loss(scores: Array, errors: Array,

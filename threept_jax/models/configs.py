@@ -301,6 +301,15 @@ class RefinerConfig(_VariantSizes):
         last fusion step; the map is the crop resized to h x h, pixel centres aligned.
       dpt_features: width of DPT's fusion path (Ranftl et al. 2021: 256); the reassembled
         levels have widths (D/4, D/2, D, D) (DPT-Large's 256, 512, 1024, 1024 at D = 1024).
+      conditioned_levels: how many of DPT's four levels of the real crop (coarsest first) are
+        reassembled from the cross-attention output, and so depend on the hypothesis; the
+        finer ones come from the encoder alone and are shared by every hypothesis. 1: the
+        fourth level only (stride 2 patches: 2 x 2 for 64 px crops at /16).
+      pixel_features: width of a convolutional stem on the crop itself (two 3 x 3 convolutions
+        at the crop's resolution, resized to the map) whose features join DPT's output before
+        the heads: DPT sees the image only through patch tokens, and a small network does not
+        learn where inside a patch an edge lies (docs/refiner.md, "Pixel features"). 0: none,
+        the paper's decoder.
       attention_impl: ``None``/``"xla"``, or ``"cudnn"`` (flash attention, GPU, bf16/fp16).
       remat: rematerialise each encoder, cross-attention and DPT fusion block (and the DPT
         head) in the backward pass.
@@ -315,6 +324,8 @@ class RefinerConfig(_VariantSizes):
     cross_attention_layers: int = 4
     output_size: int | None = None
     dpt_features: int = 256
+    conditioned_levels: int = 1
+    pixel_features: int = 0
     attention_impl: str | None = None
     remat: bool = False
     dtype: Any = jnp.float32
@@ -323,6 +334,13 @@ class RefinerConfig(_VariantSizes):
     def __post_init__(self):
         arch = decode_variant(self.variant)
         p = arch["patch_size"]
+        if not 1 <= int(self.conditioned_levels) <= 4:
+            raise ValueError(f"RefinerConfig.conditioned_levels must be 1 to 4 (DPT levels of "
+                             f"the real crop that read the cross-attention output), got "
+                             f"{self.conditioned_levels}")
+        if int(self.pixel_features) < 0:
+            raise ValueError(f"RefinerConfig.pixel_features must be >= 0 (0: no pixel stem), "
+                             f"got {self.pixel_features}")
         if self.crop_size % p:
             raise ValueError(
                 f"RefinerConfig.crop_size={self.crop_size} is not a multiple of the patch size "

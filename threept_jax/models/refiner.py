@@ -46,7 +46,7 @@ import numpy as np
 from flax import nnx
 
 from threept_jax.models.configs import RefinerConfig, get_refiner_config
-from threept_jax.models.dpt import DPT
+from threept_jax.models.dpt import DPT, resize
 from threept_jax.models.vit import (
     CrossAttentionBlock,
     EncoderBlock,
@@ -97,8 +97,26 @@ class Refiner(nnx.Module):
         self.score_head = nnx.Linear(cfg.width, 1, **kw)
         self.dpt = DPT(cfg.width, cfg.dpt_dims, cfg.dpt_features, cfg.output_size,
                        remat=cfg.remat, **kw)
-        self.desc_head = nnx.Conv(cfg.dpt_features // 2, cfg.descriptor_dim, (1, 1), **kw)
-        self.mask_head = nnx.Conv(cfg.dpt_features // 2, 1, (1, 1), **kw)
+        head_in = cfg.dpt_features // 2
+        if cfg.pixel_features:
+            # Pixel stem: 3x3 convolutions on the crop itself, joined to DPT's output by a 3x3
+            # convolution over both (configs.RefinerConfig.pixel_features).
+            conv = dict(kernel_size=(3, 3), padding="SAME", **kw)
+            self.pixel_stem = nnx.List([nnx.Conv(3, cfg.pixel_features, **conv),
+                                        nnx.Conv(cfg.pixel_features, cfg.pixel_features, **conv)])
+            self.pixel_join = nnx.Conv(head_in + cfg.pixel_features, head_in, **conv)
+        else:
+            self.pixel_stem = self.pixel_join = nnx.data(None)
+        self.desc_head = nnx.Conv(head_in, cfg.descriptor_dim, (1, 1), **kw)
+        self.mask_head = nnx.Conv(head_in, 1, (1, 1), **kw)
+
+    def _pixel_features(self, images: Array) -> Array:
+        """[N, H, W, 3] in [0, 1] -> [N, h, h, pixel_features]: the stem at the crop's
+        resolution, resized to the map (bilinear, pixel centres aligned)."""
+        x = images.astype(self.cfg.dtype) * 2.0 - 1.0
+        for conv in self.pixel_stem:
+            x = jax.nn.relu(conv(x))
+        return resize(x, (self.cfg.output_size, self.cfg.output_size))
 
     def _check_inputs(self, real: Array, renders: Array) -> tuple[int, int, int]:
         s = self.cfg.crop_size
@@ -136,15 +154,29 @@ class Refiner(nnx.Module):
         x = self.top_norm(x)  # [B*K*V, P + R, D]
         view_scores = self.score_head(x[:, num_patches]).astype(jnp.float32).reshape(b, k, v)
 
-        # DPT over 2 * B*K*V maps (real per hypothesis, then renders); the real crop's first
-        # three levels do not depend on the hypothesis and are reassembled once.
+        # DPT over 2 * B*K*V maps (real per hypothesis, then renders). The real crop's levels
+        # from conditioned_levels on (the finest) do not depend on the hypothesis and are
+        # reassembled once; the coarser ones read the cross-attention output.
+        first_cond = 4 - cfg.conditioned_levels
+        render_top = self.top_norm(enc["patch_tokens"][n_real:])
         levels = []
-        for i, lv in enumerate(enc["layers"]):
-            levels.append(jnp.concatenate([per_pair(self.dpt.reassemble(i, lv[:n_real], g)),
-                                           self.dpt.reassemble(i, lv[n_real:], g)]))
-        last = jnp.concatenate([x[:, :num_patches], self.top_norm(enc["patch_tokens"][n_real:])])
-        levels.append(self.dpt.reassemble(3, last, g))
+        for i in range(4):
+            if i < first_cond:
+                lv = enc["layers"][i]
+                real_level = per_pair(self.dpt.reassemble(i, lv[:n_real], g))
+                render_tokens = lv[n_real:]
+            else:
+                # The render's counterpart: its last encoder block, as the cross-attention
+                # output is the real crop's last block plus what it read from the render.
+                real_level = self.dpt.reassemble(i, x[:, :num_patches], g)
+                render_tokens = render_top
+            levels.append(jnp.concatenate([real_level,
+                                           self.dpt.reassemble(i, render_tokens, g)]))
         feats = self.dpt.fuse(levels)  # [2 * B*K*V, h, h, F/2]
+        if self.pixel_stem is not None:
+            pix = self._pixel_features(images)  # real crops, then renders
+            pix = jnp.concatenate([per_pair(pix[:n_real]), pix[n_real:]])
+            feats = jax.nn.relu(self.pixel_join(jnp.concatenate([feats, pix], -1)))
         desc = _normalize(self.desc_head(feats)).reshape(2, b, k, v, h, h, cfg.descriptor_dim)
         mask_logits = self.mask_head(feats[:n_pair]).astype(jnp.float32).reshape(b, k, v, h, h)
         return {
