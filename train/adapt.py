@@ -362,8 +362,9 @@ def refiner_helps(h: dict) -> bool:
 
 def refiner_lines(h: dict) -> list[str]:
     """:func:`refiner_heldout`'s figures as printed lines: rotation error and MSSD AR before and
-    after the refiner's steps, and how often its score picks the best hypothesis (none
-    without a refiner)."""
+    after the refiner's steps, its matches within 2 px against matching by position alone (the
+    baseline its descriptors must beat), and how often its score picks the best hypothesis
+    (none without a refiner)."""
     if not h:
         return []
     steps = max(int(k.removeprefix("rot_deg_after_")) for k in h
@@ -372,7 +373,9 @@ def refiner_lines(h: dict) -> list[str]:
     return [f"refiner, held-out crops ({h['num_instances']:.0f} instances x its hypotheses, "
             f"{steps} steps): median rotation error {h['rot_deg_before']:.1f} -> "
             f"{h[after]:.1f} deg, MSSD AR {h['ar_mssd_before']:.3f} -> {h['ar_mssd_after']:.3f}; "
-            f"score picks the best hypothesis {h['score_acc']:.2f} of the time"]
+            f"matches within 2 px {h['match_within_2px']:.2f} (position alone "
+            f"{h['match_within_2px_same_place']:.2f}); score picks the best hypothesis "
+            f"{h['score_acc']:.2f} of the time"]
 
 
 def test(workdir: pathlib.Path, data: pathlib.Path, out: pathlib.Path, cache: pathlib.Path,

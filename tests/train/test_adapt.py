@@ -243,6 +243,7 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
     assert saved["refiner_trained"] == str(w / "refiner")
     assert held["num_instances"] > 0 and held["step"] in refiner_run.checkpoint_steps()
     assert 0.0 <= held["ar_mssd_before"] <= 1.0 and 0.0 <= held["score_acc"] <= 1.0
+    assert 0.0 <= held["match_within_2px_same_place"] <= 1.0  # the baseline beside the matching
     assert held["rot_deg_before"] > 0.0
     overlays = sorted((w / "test" / "overlays").glob("*.png"))
     assert len(overlays) == 1 and cv2.imread(str(overlays[0])).shape[1] >= 640

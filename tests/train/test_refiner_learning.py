@@ -9,6 +9,12 @@ mesh seed that training never saw (``eval/unseen_share`` must be 1). Thresholds,
 * held-out ``eval/match_within_2px`` (share of the refinement step's reciprocal edge matches
   within 2 crop pixels of the ground truth) is at least the untrained network's + 0.10 and at
   least twice it. (The untrained network's matches are near chance, a few percent.)
+
+What it does not show: that the matches carry more than where a pixel is. Matching each render
+pixel to the real pixel at the same place (``eval/match_within_2px_same_place``) reaches about
+0.29 on records like these, and no CPU-trained refiner has beaten that baseline on held-out
+parts yet (docs/training.md, "3PT-R: matching on unseen parts per CPU minute"), so no floor
+above it can be set here.
 """
 
 import jax
