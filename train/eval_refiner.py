@@ -52,6 +52,7 @@ from threept_jax.data.refiner_input import RefinerMeshes, load_mesh_paths, refin
 from threept_jax.eval.bop6d import MSSD_THRESHOLDS
 from threept_jax.geometry.symmetry import symmetric_angle_deg
 from threept_jax.losses.refiner import WITHIN_PX
+from threept_jax.pipeline.refinement import map_pixel_centres
 from train import sharding
 from train.refiner_objective import (
     STEP_FIELDS,
@@ -110,11 +111,7 @@ def match_accuracy(matches, crop_K: jax.Array, T_cam_obj_gt: jax.Array, *, crop_
     p = jnp.einsum("bjvnik,bjvnk->bjvni", jnp.broadcast_to(R, X.shape[:-1] + (3, 3)), X) + t
     uvw = jnp.einsum("bvik,bjvnk->bjvni", crop_K, p)
     uv = uvw[..., :2] / jnp.where(uvw[..., 2:] > 0, uvw[..., 2:], 1.0)
-    # The render pixel's centre in crop pixels (the map's pixel-centre rule).
-    r = matches.render_pixel
-    scale = crop_size / map_size
-    same_place = jnp.stack([(r % map_size + 0.5) * scale - 0.5,
-                            (r // map_size + 0.5) * scale - 0.5], -1)
+    same_place = map_pixel_centres(matches.render_pixel, map_size, crop_size)
 
     def near(q):
         return (jnp.sum(jnp.square(uv - q), -1) <= WITHIN_PX**2) & (uvw[..., 2] > 0)

@@ -137,6 +137,16 @@ class RefineResult(NamedTuple):
     accepted: Array
 
 
+def map_pixel_centres(index: Array, map_size: int, crop_size: int) -> Array:
+    """Crop pixels [..., 2] (u, v) of the centres of flat map pixels ``index`` (i * w + j) of a
+    square map of side ``map_size`` over a crop of side ``crop_size``: the network contract's
+    rule, ((j + 0.5) W / w - 0.5, (i + 0.5) H / h - 0.5)."""
+    scale = crop_size / map_size
+    col = (index % map_size).astype(jnp.float32)
+    row = (index // map_size).astype(jnp.float32)
+    return jnp.stack([(col + 0.5) * scale - 0.5, (row + 0.5) * scale - 0.5], -1)
+
+
 def map_intrinsics(crop_K: Array, crop_size: int, output_size: int) -> Array:
     """K [..., 3, 3] of the output_size^2 map of a crop_size^2 crop (pixel-centre rule)."""
     box = jnp.asarray([0.0, 0.0, crop_size, crop_size], jnp.float32)
@@ -276,11 +286,7 @@ def reciprocal_matches(real_desc: Array, render_desc: Array, render_xyz: Array,
         keep = jnp.isfinite(sim)
         q = fwd[r]
         X = _subpixel_points(Z, F[q], r, xyz, rmask, (h, w), pix) if subpixel else xyz[r]
-        # Map pixel (row i, column j) -> crop pixel ((j + 0.5) W / w - 0.5, (i + 0.5) H / h - 0.5).
-        col = (q % w).astype(jnp.float32)
-        row = (q // w).astype(jnp.float32)
-        uv = jnp.stack([(col + 0.5) * (crop_size / w) - 0.5,
-                        (row + 0.5) * (crop_size / h) - 0.5], -1)
+        uv = map_pixel_centres(q, w, crop_size)
         return Matches(
             points_3d=jnp.where(keep[:, None], X, 0.0),
             points_2d=jnp.where(keep[:, None], uv, 0.0),
