@@ -308,8 +308,8 @@ class RefinerConfig(_VariantSizes):
       pixel_features: width of a convolutional stem on the crop itself (two 3 x 3 convolutions
         at the crop's resolution, resized to the map) whose features join DPT's output before
         the heads: DPT sees the image only through patch tokens, and a small network does not
-        learn where inside a patch an edge lies (docs/refiner.md, "Pixel features"). 0: none,
-        the paper's decoder.
+        learn where inside a patch an edge lies (measured in docs/training.md, "3PT-R:
+        matching on unseen parts per CPU minute"). 0: none, the paper's decoder.
       attention_impl: ``None``/``"xla"``, or ``"cudnn"`` (flash attention, GPU, bf16/fp16).
       remat: rematerialise each encoder, cross-attention and DPT fusion block (and the DPT
         head) in the backward pass.
