@@ -111,12 +111,12 @@ def refine_batch(outputs: Mapping[str, Array], rend: Renders, assets: RefinerAss
                  ) -> RefineResult:
     """:func:`update_hypotheses` of every instance ([B] leading axis on every field)."""
 
-    def one(out, r, index, crop_K, T_cam_world, h):
+    def one(out, r, index, crops, crop_K, T_cam_world, h):
         mesh = jax.tree.map(lambda x: x[index], assets.mesh)
-        return update_hypotheses(out, r, mesh, crop_K, T_cam_world, h, settings)
+        return update_hypotheses(out, r, mesh, crops, crop_K, T_cam_world, h, settings)
 
-    return jax.vmap(one)(dict(outputs), rend, batch["mesh_index"], batch["crop_K"],
-                         batch["T_cam_world"], hypotheses)
+    return jax.vmap(one)(dict(outputs), rend, batch["mesh_index"], batch["crops"],
+                         batch["crop_K"], batch["T_cam_world"], hypotheses)
 
 
 def pose_errors(assets: RefinerAssets, batch: Mapping[str, Array], poses: Array) -> Array:

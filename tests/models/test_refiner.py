@@ -13,14 +13,7 @@ from threept_jax.models.configs import (
     ViTConfig,
     get_refiner_config,
 )
-from threept_jax.models.refiner import (
-    LocalCorrelation,
-    Refiner,
-    _saved_residual_bytes,
-    local_correlation,
-    local_mix,
-    memory_plan,
-)
+from threept_jax.models.refiner import Refiner, _saved_residual_bytes, memory_plan
 from threept_jax.models.vit import ViT, count_params
 
 B, K, V = 1, 3, 2
@@ -127,74 +120,6 @@ def test_conditioned_levels_and_pixel_stem_keep_hypotheses_apart_and_streams_sia
         get_refiner_config("tiny", conditioned_levels=5)
     with pytest.raises(ValueError, match="pixel_features must be >= 0"):
         get_refiner_config("tiny", pixel_features=-1)
-
-
-def _brute_force_local(f, z, radius, weights=None):
-    """float64 loops: the cost volume, its validity and (with weights) the weighted sum of z."""
-    n, h, w, c = f.shape
-    offsets = [(dy, dx) for dy in range(-radius, radius + 1) for dx in range(-radius, radius + 1)]
-    cost = np.zeros((n, h, w, len(offsets)))
-    valid = np.zeros((h, w, len(offsets)), bool)
-    mix = np.zeros((n, h, w, c))
-    for i in range(h):
-        for j in range(w):
-            for d, (dy, dx) in enumerate(offsets):
-                if 0 <= i + dy < h and 0 <= j + dx < w:
-                    valid[i, j, d] = True
-                    cost[:, i, j, d] = np.sum(f[:, i, j] * z[:, i + dy, j + dx], -1)
-                    if weights is not None:
-                        mix[:, i, j] += weights[:, i, j, d, None] * z[:, i + dy, j + dx]
-    return cost, valid, mix
-
-
-def test_local_correlation_and_mix_match_a_brute_force_loop():
-    rng = np.random.default_rng(3)
-    f, z = rng.normal(size=(2, 2, 5, 6, 4))
-    weights = rng.uniform(size=(2, 5, 6, 9))
-    cost, valid, mix = _brute_force_local(f, z, 1, weights)
-    got_cost, got_valid = local_correlation(jnp.asarray(f, jnp.float32),
-                                            jnp.asarray(z, jnp.float32), 1)
-    np.testing.assert_allclose(got_cost, cost, atol=1e-5)
-    np.testing.assert_array_equal(got_valid, valid)
-    np.testing.assert_allclose(local_mix(jnp.asarray(weights, jnp.float32),
-                                         jnp.asarray(z, jnp.float32), 1), mix, atol=1e-5)
-
-
-def test_local_correlation_starts_as_the_correlations_softmax():
-    """With its CNN's last layer at zero (initialisation), the real descriptor at q is the
-    normalised sum of the render's descriptors around q weighted by softmax(10 * cosine) over
-    the offsets that stay on the map (float64 loops)."""
-    rng = np.random.default_rng(4)
-    f, z = rng.normal(size=(2, 2, 6, 6, 8))
-    f /= np.linalg.norm(f, axis=-1, keepdims=True)
-    z /= np.linalg.norm(z, axis=-1, keepdims=True)
-    module = LocalCorrelation(2, 16, dtype=jnp.float32, param_dtype=jnp.float32,
-                              rngs=nnx.Rngs(0))
-    cost, valid, _ = _brute_force_local(f, z, 2)
-    logits = np.where(valid, 10.0 * cost, -np.inf)
-    weights = np.exp(logits - logits.max(-1, keepdims=True))
-    weights /= weights.sum(-1, keepdims=True)
-    _, _, mix = _brute_force_local(f, z, 2, weights)
-    want = mix / np.linalg.norm(mix, axis=-1, keepdims=True)
-    got = module(jnp.asarray(f, jnp.float32), jnp.asarray(z, jnp.float32))
-    np.testing.assert_allclose(got, want, atol=1e-5)
-
-
-def test_local_correlation_keeps_hypotheses_apart(inputs):
-    """With the local correlation on, hypothesis k's outputs still depend on its render alone,
-    and its real descriptors are unit vectors."""
-    model = Refiner(get_refiner_config("tiny", correlation_radius=2), rngs=nnx.Rngs(0))
-    real, renders = inputs
-    other = renders.copy()
-    other[:, 1] = np.random.default_rng(1).uniform(size=other[:, 1].shape)
-    a, b = model(real, renders), model(real, other)
-    for key in a:
-        np.testing.assert_allclose(np.asarray(b[key])[:, [0, 2]], np.asarray(a[key])[:, [0, 2]],
-                                   atol=1e-6, err_msg=key)
-        assert np.abs(np.asarray(b[key])[:, 1] - np.asarray(a[key])[:, 1]).max() > 1e-4, key
-    np.testing.assert_allclose(np.linalg.norm(a["real_desc"], axis=-1), 1.0, atol=1e-5)
-    with pytest.raises(ValueError, match="correlation_radius must be >= 0"):
-        get_refiner_config("tiny", correlation_radius=-1)
 
 
 def test_input_errors_name_the_expected_shapes(model, inputs):

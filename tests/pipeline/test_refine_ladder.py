@@ -21,6 +21,7 @@ from threept_jax.pipeline.refinement import (
     Matches,
     RefineSettings,
     agreeing_matches,
+    edge_alignment,
     refine_step,
 )
 from threept_jax.render.mesh import load_mesh, prepare_mesh, to_raster_mesh
@@ -111,10 +112,44 @@ def test_agreeing_matches_against_opencv():
     assert want[0, 0] > 5 and want[1, 2] == 0, want
 
 
+def _alignment_opencv(crop, sil):
+    """edge_alignment of one view in float64 OpenCV (Sobel 3x3, Gaussian 5x5 sigma 1, both
+    with OpenCV's default BORDER_REFLECT_101)."""
+    grey = crop.astype(np.float64).mean(-1) / 255.0
+    gu, gv = cv2.Sobel(grey, cv2.CV_64F, 1, 0), cv2.Sobel(grey, cv2.CV_64F, 0, 1)
+    blur = cv2.GaussianBlur(sil.astype(np.float64), (5, 5), 1.0)
+    nu, nv = cv2.Sobel(blur, cv2.CV_64F, 1, 0), cv2.Sobel(blur, cv2.CV_64F, 0, 1)
+    norm = np.hypot(nu, nv).sum() * np.hypot(gu, gv).mean()
+    return np.abs(gu * nu + gv * nv).sum() / norm if norm > 0 else 0.0
+
+
+def test_edge_alignment_against_opencv():
+    """Random crops and silhouettes against float64 OpenCV; and by construction: a bright
+    square's own outline scores above the same outline 3 px off, an empty render 0, and the
+    mean runs over the views of view_mask only."""
+    rng = np.random.default_rng(0)
+    crops = rng.integers(0, 256, (2, 24, 20, 3), dtype=np.uint8)
+    sils = rng.uniform(size=(3, 2, 24, 20)) > 0.6
+    want = np.array([[_alignment_opencv(crops[v], sils[k, v]) for v in range(2)]
+                     for k in range(3)])
+    np.testing.assert_allclose(edge_alignment(crops, sils), want.mean(-1), rtol=1e-4)
+    np.testing.assert_allclose(edge_alignment(crops, sils, np.array([False, True])),
+                               want[:, 1], rtol=1e-4)
+    square = np.zeros((1, 32, 32, 3), np.uint8)
+    square[0, 10:22, 8:20] = 200
+    sil = np.zeros((3, 1, 32, 32), bool)
+    sil[0, 0, 10:22, 8:20] = True
+    sil[1, 0, 13:25, 8:20] = True
+    got = np.asarray(edge_alignment(square, sil))
+    assert got[0] > got[1] > 0 and got[2] == 0, got
+    np.testing.assert_allclose(got[0], _alignment_opencv(square[0], sil[0, 0]), rtol=1e-4)
+
+
 def test_updates_are_refused_without_consensus_and_kept_with_it(mesh):
     """One step from 8 degrees off: the clean oracle's update is kept and lands closer; an
     oracle whose every real descriptor is an outlier moves nothing (accepted False, the input
-    pose returned), while the same step without the consensus test moves the pose."""
+    pose returned); either test alone refuses it (the consensus of the matches, the outline on
+    the image's edges), and the same step without both moves the pose."""
     scene = make_scene(mesh, 1)
     start = start_poses(scene, 1, seed=4)[0]
     rm = to_raster_mesh(scene.mesh)
@@ -129,8 +164,13 @@ def test_updates_are_refused_without_consensus_and_kept_with_it(mesh):
     for name, net, settings in (
             ("clean", make_oracle(32), safe),
             ("outliers", make_oracle(32, outliers=1.0), safe),
+            ("outliers, consensus only", make_oracle(32, outliers=1.0),
+             dataclasses.replace(safe, check_outline=False)),
+            ("outliers, outline only", make_oracle(32, outliers=1.0),
+             dataclasses.replace(safe, min_agreement=0.0, agree_map_px=1e4)),
             ("outliers, no test", make_oracle(32, outliers=1.0),
-             dataclasses.replace(safe, min_agreement=0.0, agree_map_px=1e4))):
+             dataclasses.replace(safe, min_agreement=0.0, agree_map_px=1e4,
+                                 check_outline=False))):
         r = refine_step(net, rm, crops, crop_K, T_cw, T0[None], output_size=32,
                         settings=settings)
         out[name] = (bool(r.accepted[0]), pose_errors(np.asarray(r.hypotheses[0]), scene.T_gt),
@@ -138,5 +178,6 @@ def test_updates_are_refused_without_consensus_and_kept_with_it(mesh):
     assert out["clean"][0] and out["clean"][1][0] < 0.5 * e0[0], (out["clean"], e0)
     assert not out["outliers"][0]
     np.testing.assert_array_equal(out["outliers"][2], np.asarray(T0))
+    assert not out["outliers, consensus only"][0] and not out["outliers, outline only"][0]
     assert out["outliers, no test"][0]
     assert np.abs(out["outliers, no test"][2] - np.asarray(T0)).max() > 1e-3

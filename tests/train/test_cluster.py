@@ -230,6 +230,15 @@ def test_resuming_another_model_names_the_run(toy, tmp_path):
                                          r"variant='tiny/8' \(config: 'S/16'\)"):
         run.check_same_model(DetectorConfig(variant="S/16", image_size=64, render_size=32))
     assert json.loads(run.model_file.read_text())["variant"] == "tiny/8"
+    # A run saved before a model field existed resumes under the field's default, not another.
+    fields = json.loads(run.model_file.read_text())
+    del fields["num_registers"]
+    run.model_file.write_text(json.dumps(fields))
+    run.check_same_model(DetectorConfig(variant="tiny/8", image_size=64, render_size=32))
+    with pytest.raises(ValueError, match=r"num_registers=0 \(config: 1\)"):
+        run.check_same_model(DetectorConfig(variant="tiny/8", image_size=64, render_size=32,
+                                            num_registers=1))
+    run.write_model_config(DetectorConfig(variant="tiny/8", image_size=64, render_size=32))
     assert run.checkpoint_steps() == []
     with pytest.raises(FileNotFoundError, match="saved none yet"):
         run.resolve_step("best")

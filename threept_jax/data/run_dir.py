@@ -145,8 +145,9 @@ class RunDir:
 
         Refuses a workdir that holds a run of another kind (its model file), then compares
         ``model_cfg`` with the saved model config, ignoring :data:`COMPUTE_ONLY_FIELDS`; does
-        nothing when the workdir holds no model config. ``fix`` replaces the advice that ends
-        the message.
+        nothing when the workdir holds no model config. A field the saved config lacks (added
+        to the model since the run was saved) counts at its default, as loading the run reads
+        it. ``fix`` replaces the advice that ends the message.
         """
         for kind, (name, _) in MODEL_FILES.items():
             if kind != self.model and (self.path / name).exists():
@@ -155,7 +156,7 @@ class RunDir:
                     "fresh --workdir")
         if not self.model_file.exists():
             return
-        saved = json.loads(self.model_file.read_text())
+        saved = self.read_model_config().to_dict()
         new = model_cfg.to_dict()
         diff = sorted(k for k in set(saved) | set(new)
                       if k not in COMPUTE_ONLY_FIELDS and saved.get(k) != new.get(k))

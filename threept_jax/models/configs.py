@@ -195,10 +195,6 @@ class DetectorConfig(_VariantSizes):
       box_head_layers / presence_head_layers: MLP depths of the heads (OWL-ViT: 3 for boxes).
       class_prior: initial presence probability (0.01, RetinaNet/OWL-ViT focal-loss prior).
       logit_scale_init: initial scale of the cosine similarity in orientation logits.
-      correlation_radius: r > 0 re-expresses each real descriptor as a weighted mean of the
-        render descriptors within r map pixels, weighted by a CNN over the local cost volume
-        (:class:`threept_jax.models.refiner.LocalCorrelation`); 0: off, the paper's decoder.
-        True displacements beyond r map pixels cannot be matched.
       attention_impl: ``None``/``"xla"``, or ``"cudnn"`` (flash attention, GPU, bf16/fp16).
       remat: rematerialise each transformer block in the backward pass.
       dtype / param_dtype: compute and storage dtypes of every layer.
@@ -314,10 +310,6 @@ class RefinerConfig(_VariantSizes):
         the heads: DPT sees the image only through patch tokens, and a small network does not
         learn where inside a patch an edge lies (measured in docs/training.md, "3PT-R:
         matching on unseen parts per CPU minute"). 0: none, the paper's decoder.
-      correlation_radius: r > 0 re-expresses each real descriptor as a weighted mean of the
-        render descriptors within r map pixels, weighted by a CNN over the local cost volume
-        (:class:`threept_jax.models.refiner.LocalCorrelation`); 0: off, the paper's decoder.
-        True displacements beyond r map pixels cannot be matched.
       attention_impl: ``None``/``"xla"``, or ``"cudnn"`` (flash attention, GPU, bf16/fp16).
       remat: rematerialise each encoder, cross-attention and DPT fusion block (and the DPT
         head) in the backward pass.
@@ -334,7 +326,6 @@ class RefinerConfig(_VariantSizes):
     dpt_features: int = 256
     conditioned_levels: int = 1
     pixel_features: int = 0
-    correlation_radius: int = 0
     attention_impl: str | None = None
     remat: bool = False
     dtype: Any = jnp.float32
@@ -350,9 +341,6 @@ class RefinerConfig(_VariantSizes):
         if int(self.pixel_features) < 0:
             raise ValueError(f"RefinerConfig.pixel_features must be >= 0 (0: no pixel stem), "
                              f"got {self.pixel_features}")
-        if int(self.correlation_radius) < 0:
-            raise ValueError(f"RefinerConfig.correlation_radius must be >= 0 (0: no local "
-                             f"correlation), got {self.correlation_radius}")
         if self.crop_size % p:
             raise ValueError(
                 f"RefinerConfig.crop_size={self.crop_size} is not a multiple of the patch size "

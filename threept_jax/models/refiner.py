@@ -25,18 +25,7 @@ view, drawn into the same crops). The network:
    the real crop only, a mask logit per pixel. The maps have side h = ``cfg.output_size``
    (default 4 x the patch grid: 64 for 224 px crops at /14); pixel (i, j) is the crop point
    ((j + 0.5) H / h - 0.5, (i + 0.5) H / h - 0.5).
-4. **Local correlation** (``cfg.correlation_radius`` r > 0; off in every size, not in the
-   paper): the real crop's descriptor at map pixel q is replaced by a weighted mean of the
-   render descriptors within r map pixels of q, normalised again,
-   F'_q = normalise(sum_d a_qd Z_(q+d)), so a real pixel's descriptor says which render pixel
-   it shows. The weights a_q = softmax_d(s c_qd + CNN(c)_qd) come from the local cost volume
-   c_qd = F_q . Z_(q+d) (the (2r+1)^2 correlations around q, offsets off the map excluded), a
-   learnt scale s and a small CNN over the cost volume whose last layer starts at zero (so at
-   initialisation the weights are the correlations' softmax). The CNN sees correlations, not
-   appearance: finding the peak and keeping the displacement smooth across neighbours is the
-   same task on every part (PWC-Net, RAFT). The matching loss and the reciprocal matching of
-   the refinement step read F' unchanged.
-5. **Scores**: the first register token of the real view after cross-attention, through a
+4. **Scores**: the first register token of the real view after cross-attention, through a
    linear layer, is the score logit of that (hypothesis, view); a hypothesis's score is the
    mean over its views.
 
@@ -49,7 +38,7 @@ C descriptor dimension, P patches, R registers, D width.
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -86,67 +75,6 @@ def _normalize(x: Array, eps: float = 1e-6) -> Array:
     return x * jax.lax.rsqrt(jnp.maximum(jnp.sum(x * x, axis=-1, keepdims=True), eps * eps))
 
 
-def local_offsets(radius: int) -> list[tuple[int, int]]:
-    """The (2r+1)^2 offsets (dy, dx) of a local window, row-major: channel d of
-    :func:`local_correlation` is offset ``local_offsets(r)[d]``."""
-    return [(dy, dx) for dy in range(-radius, radius + 1) for dx in range(-radius, radius + 1)]
-
-
-def _shifted(z: Array, radius: int) -> Callable[[int, int], Array]:
-    """z [N, h, w, C] -> a function (dy, dx) -> z[:, i + dy, j + dx] at every (i, j), zero
-    off the map."""
-    h, w = z.shape[1:3]
-    zp = jnp.pad(z, ((0, 0), (radius, radius), (radius, radius), (0, 0)))
-    return lambda dy, dx: zp[:, radius + dy:radius + dy + h, radius + dx:radius + dx + w]
-
-
-def local_correlation(f: Array, z: Array, radius: int) -> tuple[Array, Array]:
-    """Cost volume of two maps [N, h, w, C]: ``c[n, i, j, d] = f[n, i, j] . z[n, i + dy,
-    j + dx]`` for the offsets of :func:`local_offsets`, and ``valid`` [h, w, D] (the offset
-    stays on the map; c is 0 where it does not)."""
-    shifted = _shifted(z, radius)
-    ones = _shifted(jnp.ones((1, *z.shape[1:3], 1), z.dtype), radius)
-    offsets = local_offsets(radius)
-    cost = jnp.stack([jnp.sum(f * shifted(dy, dx), -1) for dy, dx in offsets], -1)
-    valid = jnp.stack([ones(dy, dx)[0, ..., 0] for dy, dx in offsets], -1) > 0
-    return cost, valid
-
-
-def local_mix(weights: Array, z: Array, radius: int) -> Array:
-    """``sum_d weights[n, i, j, d] z[n, i + dy, j + dx]`` (zero off the map): [N, h, w, C]."""
-    shifted = _shifted(z, radius)
-    return sum(weights[..., d, None] * shifted(dy, dx)
-               for d, (dy, dx) in enumerate(local_offsets(radius)))
-
-
-class LocalCorrelation(nnx.Module):
-    """Real descriptors re-expressed through the render's: the module docstring's step 4.
-
-    ``LocalCorrelation(radius, width)(f, z) -> f'``, all [N, h, w, C] unit vectors; ``f`` the
-    real crop's descriptors and ``z`` the render's of the same (hypothesis, view) pair.
-    """
-
-    def __init__(self, radius: int, width: int, *, dtype: Any, param_dtype: Any,
-                 rngs: nnx.Rngs):
-        self.radius = radius
-        n = (2 * radius + 1) ** 2
-        conv = dict(kernel_size=(3, 3), padding="SAME", dtype=dtype, param_dtype=param_dtype,
-                    rngs=rngs)
-        self.convs = nnx.List([nnx.Conv(n, width, **conv), nnx.Conv(width, width, **conv)])
-        self.out = nnx.Conv(width, n, kernel_init=nnx.initializers.zeros, **conv)
-        # Inverse temperature of the correlations' softmax (cosines in [-1, 1]).
-        self.scale = nnx.Param(jnp.asarray(10.0, param_dtype))
-
-    def __call__(self, f: Array, z: Array) -> Array:
-        cost, valid = local_correlation(f, z, self.radius)
-        x = cost
-        for conv in self.convs:
-            x = jax.nn.gelu(conv(x))
-        logits = self.scale[...] * cost + self.out(x).astype(jnp.float32)
-        weights = jax.nn.softmax(jnp.where(valid, logits, -jnp.inf), axis=-1)
-        return _normalize(local_mix(weights, z, self.radius))
-
-
 class Refiner(nnx.Module):
     """3PT-R network: ``Refiner(cfg, rngs=nnx.Rngs(0))(real, renders) -> dict``.
 
@@ -179,10 +107,6 @@ class Refiner(nnx.Module):
             self.pixel_join = nnx.Conv(head_in + cfg.pixel_features, head_in, **conv)
         else:
             self.pixel_stem = self.pixel_join = nnx.data(None)
-        if cfg.correlation_radius:
-            self.correlation = LocalCorrelation(cfg.correlation_radius, cfg.dpt_features, **kw)
-        else:
-            self.correlation = nnx.data(None)
         self.desc_head = nnx.Conv(head_in, cfg.descriptor_dim, (1, 1), **kw)
         self.mask_head = nnx.Conv(head_in, 1, (1, 1), **kw)
 
@@ -253,11 +177,7 @@ class Refiner(nnx.Module):
             pix = self._pixel_features(images)  # real crops, then renders
             pix = jnp.concatenate([per_pair(pix[:n_real]), pix[n_real:]])
             feats = jax.nn.relu(self.pixel_join(jnp.concatenate([feats, pix], -1)))
-        desc = _normalize(self.desc_head(feats))
-        if self.correlation is not None:
-            desc = jnp.concatenate([self.correlation(desc[:n_pair], desc[n_pair:]),
-                                    desc[n_pair:]])
-        desc = desc.reshape(2, b, k, v, h, h, cfg.descriptor_dim)
+        desc = _normalize(self.desc_head(feats)).reshape(2, b, k, v, h, h, cfg.descriptor_dim)
         mask_logits = self.mask_head(feats[:n_pair]).astype(jnp.float32).reshape(b, k, v, h, h)
         return {
             "real_desc": desc[0],

@@ -333,7 +333,7 @@ def refine_instances(network: Network, meshes: RasterMesh, mesh_index: Array, im
 
     def look(hyps):
         """Crop every view around each instance's first hypothesis, render all of them, run
-        the network: (boxes, crop_K, renders, outputs, score [N, K])."""
+        the network: (boxes, crops, crop_K, renders, outputs, score [N, K])."""
         def crop_one(index, best):
             box = crop_boxes(mesh_of(index), best, T_cam_world, Ks, margin=loop.crop_margin)
             return (box,) + antialiased_crops(images, Ks, box, crop_size, loop.antialias)
@@ -347,19 +347,19 @@ def refine_instances(network: Network, meshes: RasterMesh, mesh_index: Array, im
         rend = jax.vmap(render_one)(mesh_index, crop_K, hyps)
         out = dict(network(crops, rend.rgb))
         score = jnp.sum(jnp.where(view_mask[:, None], out["view_scores"], 0.0), -1)
-        return boxes, crop_K, rend, out, score / views[:, None]
+        return boxes, crops, crop_K, rend, out, score / views[:, None]
 
     def take(x, index):  # x [N, K, ...], index [N, k] -> [N, k, ...]
         return jnp.take_along_axis(x, index.reshape(index.shape + (1,) * (x.ndim - 2)), axis=1)
 
     history, start = [hyps[:, 0]], None
     for k_next in schedule[1:]:
-        boxes, crop_K, rend, out, score = look(hyps)
+        boxes, crops, crop_K, rend, out, score = look(hyps)
 
-        def update_one(o, r, index, cK, h, vm):
-            return update_hypotheses(o, r, mesh_of(index), cK, T_cam_world, h, settings, vm)
+        def update_one(o, r, index, c, cK, h, vm):
+            return update_hypotheses(o, r, mesh_of(index), c, cK, T_cam_world, h, settings, vm)
 
-        res = jax.vmap(update_one)(out, rend, mesh_index, crop_K, hyps, view_mask)
+        res = jax.vmap(update_one)(out, rend, mesh_index, crops, crop_K, hyps, view_mask)
         select = functools.partial(select_hypotheses, num_keep=k_next,
                                    max_deg=loop.duplicate_deg, max_frac=loop.duplicate_frac)
         keep = jax.vmap(select)(res.hypotheses, score, symmetries, symmetry_mask,
@@ -374,7 +374,7 @@ def refine_instances(network: Network, meshes: RasterMesh, mesh_index: Array, im
 
     # The last look: score the final pool (the refined best and the start) and keep the
     # higher; its score, mask and crop are the result's.
-    boxes, _, _, out, score = look(hyps)
+    boxes, _, _, _, out, score = look(hyps)
     order = jnp.argsort(-jnp.where(jnp.isnan(score), -jnp.inf, score), axis=1, stable=True)
     hyps, scores = take(hyps, order), take(score, order)
     mask_logits = take(out["mask_logits"], order[:, :1])[:, 0]

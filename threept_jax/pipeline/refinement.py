@@ -53,6 +53,16 @@ lie in front of a camera that sees the instance. Otherwise the hypothesis comes 
 (``threept_jax.testing.refine_ladder``): about 0.9 of an oracle's matches agree with its
 update, 0.4-0.55 at descriptor noise 1, 0.22-0.28 at noise 2 and under 0.2 when every
 descriptor is an outlier.
+
+The matches cannot catch matches that agree with each other but not with the image: a CPU-
+trained network matches most render pixels near their own place, every such set passes the
+consensus test, and PnP moves the pose by their noise (docs/training.md, issue 25). So the
+step also asks the image (``RefineSettings.check_outline``): PnP's pose must put the object's
+outline on the real crops' edges at least as well as the input pose does
+(:func:`edge_alignment` of :func:`silhouettes`, rendered 4x supersampled so sub-pixel moves
+count). Moves of the matched points under ``OUTLINE_MIN_SHIFT_PX`` (half a crop pixel) are
+below what the crops' edges resolve and are left to the matches, so a good network's last
+sub-pixel steps go through.
 """
 
 from __future__ import annotations
@@ -62,6 +72,7 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from threept_jax.geometry.camera import crop_intrinsics, project, transform
 from threept_jax.geometry.pnp import solve_pnp
@@ -76,6 +87,7 @@ class Renders(NamedTuple):
     """Renders of K hypotheses into V crops (:func:`render_hypotheses`).
 
     rgb: [K, V, H, W, 3] float32 in [0, 1], shaded colour at the crop size (network input).
+    silhouette: [K, V, H, W] float32 object coverage of each crop pixel (:func:`silhouettes`).
     xyz: [K, V, h, w, 3] object coordinates (mm) at the map's pixel centres, 0 on background.
     mask: [K, V, h, w] bool, object pixels of the map.
     edge: [K, V, h, w] bool, edge pixels of the map (silhouette, depth step, crease).
@@ -85,6 +97,7 @@ class Renders(NamedTuple):
     """
 
     rgb: Array
+    silhouette: Array
     xyz: Array
     mask: Array
     edge: Array
@@ -124,6 +137,7 @@ class RefineResult(NamedTuple):
       ``converged``, ...).
     agreement: [K, 2] matches that agree with the input pose and with PnP's pose
       (:func:`agreeing_matches`).
+    alignment: [K, 2] :func:`edge_alignment` of the input pose and of PnP's pose.
     accepted: [K] bool, the update was kept (:func:`update_hypotheses`' safety test).
     """
 
@@ -134,6 +148,7 @@ class RefineResult(NamedTuple):
     matches: Matches
     pnp: dict
     agreement: Array
+    alignment: Array
     accepted: Array
 
 
@@ -171,8 +186,75 @@ def render_hypotheses(mesh: RasterMesh, crop_K: Array, T_cam_world: Array, hypot
                  ("xyz", "mask", "edge"))
     z = jnp.einsum("kvj,j->kv", T_cam_obj[:, :, 2, :3], mesh.center) + T_cam_obj[:, :, 2, 3]
     pixel_mm = jnp.maximum(z, 1e-3) / jnp.sqrt(K_map[:, 0, 0] * K_map[:, 1, 1])
-    return Renders(rgb=rgb, xyz=geo["xyz"], mask=geo["mask"], edge=geo["edge"], K_map=K_map,
+    return Renders(rgb=rgb, silhouette=silhouettes(mesh, T_cam_obj, crop_K, crop_size),
+                   xyz=geo["xyz"], mask=geo["mask"], edge=geo["edge"], K_map=K_map,
                    pixel_mm=pixel_mm)
+
+
+OUTLINE_MIN_SHIFT_PX = 0.5
+"""Updates that move the matched points by less (crop pixels, :func:`outline_shift`) are not
+judged by the outline check (:class:`RefineSettings`.check_outline)."""
+
+SILHOUETTE_SUPERSAMPLING = 4
+"""Sub-pixels per side of :func:`silhouettes`: outline moves of a quarter pixel change it."""
+
+
+def silhouettes(mesh: RasterMesh, T_cam_obj: Array, crop_K: Array, crop_size: int) -> Array:
+    """[K, V, H, W] float32 object coverage of each crop pixel at poses T_cam_obj [K, V, 4, 4]
+    (crop_K [V, 3, 3]): the mask rendered at SILHOUETTE_SUPERSAMPLING x the crop size,
+    box-averaged, so that the outline moves with sub-pixel pose changes."""
+    a, size = SILHOUETTE_SUPERSAMPLING, crop_size * SILHOUETTE_SUPERSAMPLING
+    K_fine = jnp.broadcast_to(map_intrinsics(crop_K, crop_size, size), T_cam_obj.shape[:2] + (3, 3))
+    fine = render(mesh, T_cam_obj, K_fine, (size, size), ("mask",))["mask"]
+    return fine.reshape(*fine.shape[:2], crop_size, a, crop_size, a).astype(jnp.float32).mean((3, 5))
+
+
+# NumPy, not jnp: module constants must not start JAX's backend at import.
+_SOBEL = np.array([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]], np.float32)
+_GAUSS5 = np.exp(-0.5 * np.arange(-2.0, 3.0) ** 2).astype(np.float32)  # sigma 1 px, 5 taps
+
+
+def _filter2d(x: Array, kernel: Array) -> Array:
+    """[..., H, W] filtered by a 2D kernel (correlation, as OpenCV's filter2D), borders
+    reflected without repeating the edge pixel (OpenCV's BORDER_REFLECT_101)."""
+    r = kernel.shape[0] // 2
+    lead = x.shape[:-2]
+    xp = jnp.pad(x, [(0, 0)] * len(lead) + [(r, r), (r, r)], mode="reflect")
+    xp = xp.reshape((-1, 1) + xp.shape[-2:])
+    k = jnp.asarray(kernel, x.dtype)[None, None]
+    out = jax.lax.conv_general_dilated(xp, k, (1, 1), "VALID")
+    return out.reshape(lead + x.shape[-2:])
+
+
+def _gradients(x: Array) -> tuple[Array, Array]:
+    """Sobel derivatives (d/du, d/dv) of [..., H, W], OpenCV's 3x3 ``Sobel``."""
+    return _filter2d(x, _SOBEL), _filter2d(x, _SOBEL.T)
+
+
+def edge_alignment(crops: Array, coverage: Array, view_mask: Array | None = None) -> Array:
+    """[K] how well the rendered silhouettes (``coverage`` [K, V, H, W] in [0, 1], bool or
+    :func:`silhouettes`) lie on edges of the real crops
+    [V, H, W, 3] (uint8 or float in [0, 1]), averaged over the views of ``view_mask`` [V].
+
+    Per view: the silhouette, blurred (Gaussian, sigma 1 px), has gradient n across its outline;
+    the crop's grey level has gradient g. The alignment is sum |g . n| / sum |n|, the real
+    image's contrast across the outline, weighted along it, over the crop's mean gradient
+    magnitude: about 1 for an outline placed at random, more where it runs along the object's
+    edges (the gradient-orientation similarity of LINE-2D, Hinterstoisser et al. 2012, on the
+    silhouette). A view whose render shows nothing scores 0. It reads the image, not the
+    network, so it checks poses a network's matches would pass regardless.
+    """
+    crops = jnp.asarray(crops)
+    grey = (crops.astype(jnp.float32) / (255.0 if crops.dtype == jnp.uint8 else 1.0)).mean(-1)
+    gu, gv = _gradients(grey)  # [V, H, W]
+    sil = jnp.asarray(coverage, jnp.float32)
+    g1 = _GAUSS5 / _GAUSS5.sum()
+    nu, nv = _gradients(_filter2d(sil, jnp.asarray(np.outer(g1, g1))))  # [K, V, H, W]
+    across = jnp.sum(jnp.abs(gu * nu + gv * nv), axis=(-2, -1))
+    norm = jnp.sum(jnp.hypot(nu, nv), axis=(-2, -1)) * jnp.mean(jnp.hypot(gu, gv), axis=(-2, -1))
+    per_view = jnp.where(norm > 0, across / jnp.where(norm > 0, norm, 1.0), 0.0)  # [K, V]
+    vm = jnp.ones(per_view.shape[-1], bool) if view_mask is None else jnp.asarray(view_mask)
+    return jnp.sum(jnp.where(vm, per_view, 0.0), -1) / jnp.maximum(jnp.sum(vm), 1)
 
 
 def _mutual_nn(Z: Array, F: Array, render_mask: Array, block: int):
@@ -318,6 +400,11 @@ class RefineSettings:
         many map pixels of its real pixel (:func:`agreeing_matches`).
       min_agreement: the share of a hypothesis' matches that must agree with PnP's pose for the
         update to be kept (and at least 6 matches); :func:`update_hypotheses`.
+      check_outline: keep an update only if it puts the object's outline on the real crops'
+        edges at least as well as the input pose (:func:`edge_alignment` of
+        :func:`silhouettes`), unless it moves the matched points by under
+        ``OUTLINE_MIN_SHIFT_PX`` (:func:`outline_shift`); off only to measure what the check
+        does.
     """
 
     num_matches: int = 128
@@ -330,6 +417,7 @@ class RefineSettings:
     max_faces: int = 4096
     agree_map_px: float = 2.0
     min_agreement: float = 0.35
+    check_outline: bool = True
 
     def __post_init__(self):
         if not self.agree_map_px > 0 or not 0.0 <= self.min_agreement <= 1.0:
@@ -359,11 +447,28 @@ def agreeing_matches(matches: Matches, crop_K: Array, T_cam_world: Array, poses:
     return jnp.sum(ok, axis=(1, 2))
 
 
-def update_hypotheses(outputs: dict, rend: Renders, mesh: RasterMesh, crop_K: Array,
-                      T_cam_world: Array, hypotheses: Array,
+def outline_shift(matches: Matches, crop_K: Array, T_cam_world: Array, before: Array,
+                  after: Array) -> Array:
+    """[K] how far (crop pixels) pose ``after`` moves the matched points' projections from
+    where ``before`` puts them: the largest over views of the mean over valid matches (0 for a
+    hypothesis without any)."""
+    def uv(poses):
+        T_cam_obj = jnp.einsum("vij,kjl->kvil", T_cam_world, poses)
+        cam = transform(T_cam_obj, matches.points_3d)
+        return project(cam, jnp.broadcast_to(crop_K, T_cam_obj.shape[:2] + (3, 3)))
+
+    shift = jnp.sqrt(jnp.sum((uv(after) - uv(before)) ** 2, -1))  # [K, V, N]
+    w = (matches.weights > 0).astype(jnp.float32)
+    per_view = jnp.sum(jnp.where(w > 0, shift, 0.0), -1) / jnp.maximum(jnp.sum(w, -1), 1.0)
+    return jnp.max(per_view, -1)
+
+
+def update_hypotheses(outputs: dict, rend: Renders, mesh: RasterMesh, crops: Array,
+                      crop_K: Array, T_cam_world: Array, hypotheses: Array,
                       settings: RefineSettings = RefineSettings(),
                       view_mask: Array | None = None) -> RefineResult:
-    """The step after the network: matches from its outputs, multi-view PnP per hypothesis.
+    """The step after the network: matches from its outputs, multi-view PnP per hypothesis,
+    each update checked against the real crops [V, H, W, 3] (module docstring, safe updates).
 
     ``outputs``: the network's dict for ONE instance, without the batch axis (``real_desc``,
     ``render_desc`` [K, V, h, w, C], ``mask_logits`` [K, V, h, w], ``view_scores`` [K, V],
@@ -403,7 +508,18 @@ def update_hypotheses(outputs: dict, rend: Renders, mesh: RasterMesh, crop_K: Ar
     before = agreeing_matches(matches, crop_K, T_cam_world, hypotheses, gate)
     after = agreeing_matches(matches, crop_K, T_cam_world, refined, gate)
     valid = jnp.sum(matches.weights > 0, axis=(1, 2))
-    accepted = (in_front & (after >= before)
+    # Image evidence, not the network's: PnP's pose must put the object's outline on the crops'
+    # edges at least as well as the input pose does. Matches that agree with each other but
+    # not with the image (every pixel matched near its own place) move the outline off them.
+    sil = silhouettes(mesh, jnp.einsum("vij,kjl->kvil", T_cam_world, refined), crop_K,
+                      crop_size)
+    aligned = jnp.stack([edge_alignment(crops, rend.silhouette, vm),
+                         edge_alignment(crops, sil, vm)], -1)
+    # Moves under half a crop pixel are below what the crops' edges resolve (the check would
+    # judge noise and stop the last sub-pixel steps of a good network): left to the matches.
+    small = outline_shift(matches, crop_K, T_cam_world, hypotheses, refined) < OUTLINE_MIN_SHIFT_PX
+    seen = (aligned[:, 1] >= aligned[:, 0]) | small | (not s.check_outline)
+    accepted = (in_front & (after >= before) & seen
                 & (after >= jnp.maximum(6.0, s.min_agreement * valid)))
     refined = jnp.where(accepted[:, None, None], refined, hypotheses)
     return RefineResult(
@@ -414,6 +530,7 @@ def update_hypotheses(outputs: dict, rend: Renders, mesh: RasterMesh, crop_K: Ar
         matches=matches,
         pnp=info,
         agreement=jnp.stack([before, after], -1),
+        alignment=aligned,
         accepted=accepted,
     )
 
@@ -464,4 +581,4 @@ def refine_step(
     rend = render_hypotheses(mesh, crop_K, T_cam_world, hypotheses, crop_size=H,
                              output_size=output_size, ambient=settings.ambient)
     out = jax.tree.map(lambda x: x[0], network(crops[None], rend.rgb[None]))
-    return update_hypotheses(out, rend, mesh, crop_K, T_cam_world, hypotheses, settings)
+    return update_hypotheses(out, rend, mesh, crops, crop_K, T_cam_world, hypotheses, settings)
