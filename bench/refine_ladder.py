@@ -10,8 +10,9 @@ them (15 degrees half-normal, 2 % of the diameter across, 5 % of the depth along
 For every rung it prints the median rotation (degrees) and translation (mm) error after the
 loop and their ratio to the start's (the reference, same starts, same process); "worse" is the
 share of starts whose rotation error grew by more than 0.5 degrees. With ``--compare`` the same
-ladder runs again with the updates' consensus test off (``RefineSettings.min_agreement=0``) to
-show what the test buys. Times are the warm loop (the first rung of each view count compiles;
+ladder runs again with the updates' outline check off (``RefineSettings.check_outline=False``)
+and with their consensus test off (``RefineSettings.min_agreement=0``) to show what each buys
+and costs. Times are the warm loop (the first rung of each view count compiles;
 its time is printed apart).
 
     python bench/refine_ladder.py [--views 1 3] [--starts 16] [--compare] [--out ladder.json]
@@ -53,7 +54,8 @@ def main(argv=None) -> int:
     p.add_argument("--starts", type=int, default=16, help="starting poses per rung")
     p.add_argument("--mesh", type=pathlib.Path, default=MESH, help="a PLY in mm")
     p.add_argument("--compare", action="store_true",
-                   help="also run with the consensus test off (min_agreement=0)")
+                   help="also run with the outline check off (check_outline=False) and with "
+                        "the consensus test off (min_agreement=0)")
     p.add_argument("--out", type=pathlib.Path, default=None, help="write the rows as JSON")
     args = p.parse_args(argv)
     if args.starts < 1:
@@ -67,6 +69,7 @@ def main(argv=None) -> int:
     rungs = [(n, o) for n in NOISE for o in OUTLIERS]
     variants = {"safe": RefineSettings(ambient=1.0)}
     if args.compare:
+        variants["no outline check"] = dataclasses.replace(variants["safe"], check_outline=False)
         variants["no consensus test"] = dataclasses.replace(variants["safe"], min_agreement=0.0)
     rows = []
     for views in args.views:

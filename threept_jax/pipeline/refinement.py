@@ -87,7 +87,6 @@ class Renders(NamedTuple):
     """Renders of K hypotheses into V crops (:func:`render_hypotheses`).
 
     rgb: [K, V, H, W, 3] float32 in [0, 1], shaded colour at the crop size (network input).
-    silhouette: [K, V, H, W] float32 object coverage of each crop pixel (:func:`silhouettes`).
     xyz: [K, V, h, w, 3] object coordinates (mm) at the map's pixel centres, 0 on background.
     mask: [K, V, h, w] bool, object pixels of the map.
     edge: [K, V, h, w] bool, edge pixels of the map (silhouette, depth step, crease).
@@ -97,7 +96,6 @@ class Renders(NamedTuple):
     """
 
     rgb: Array
-    silhouette: Array
     xyz: Array
     mask: Array
     edge: Array
@@ -137,7 +135,8 @@ class RefineResult(NamedTuple):
       ``converged``, ...).
     agreement: [K, 2] matches that agree with the input pose and with PnP's pose
       (:func:`agreeing_matches`).
-    alignment: [K, 2] :func:`edge_alignment` of the input pose and of PnP's pose.
+    alignment: [K, 2] :func:`edge_alignment` of the input pose and of PnP's pose (NaN with
+      ``RefineSettings.check_outline`` off).
     accepted: [K] bool, the update was kept (:func:`update_hypotheses`' safety test).
     """
 
@@ -186,8 +185,7 @@ def render_hypotheses(mesh: RasterMesh, crop_K: Array, T_cam_world: Array, hypot
                  ("xyz", "mask", "edge"))
     z = jnp.einsum("kvj,j->kv", T_cam_obj[:, :, 2, :3], mesh.center) + T_cam_obj[:, :, 2, 3]
     pixel_mm = jnp.maximum(z, 1e-3) / jnp.sqrt(K_map[:, 0, 0] * K_map[:, 1, 1])
-    return Renders(rgb=rgb, silhouette=silhouettes(mesh, T_cam_obj, crop_K, crop_size),
-                   xyz=geo["xyz"], mask=geo["mask"], edge=geo["edge"], K_map=K_map,
+    return Renders(rgb=rgb, xyz=geo["xyz"], mask=geo["mask"], edge=geo["edge"], K_map=K_map,
                    pixel_mm=pixel_mm)
 
 
@@ -511,14 +509,20 @@ def update_hypotheses(outputs: dict, rend: Renders, mesh: RasterMesh, crops: Arr
     # Image evidence, not the network's: PnP's pose must put the object's outline on the crops'
     # edges at least as well as the input pose does. Matches that agree with each other but
     # not with the image (every pixel matched near its own place) move the outline off them.
-    sil = silhouettes(mesh, jnp.einsum("vij,kjl->kvil", T_cam_world, refined), crop_K,
-                      crop_size)
-    aligned = jnp.stack([edge_alignment(crops, rend.silhouette, vm),
-                         edge_alignment(crops, sil, vm)], -1)
-    # Moves under half a crop pixel are below what the crops' edges resolve (the check would
-    # judge noise and stop the last sub-pixel steps of a good network): left to the matches.
-    small = outline_shift(matches, crop_K, T_cam_world, hypotheses, refined) < OUTLINE_MIN_SHIFT_PX
-    seen = (aligned[:, 1] >= aligned[:, 0]) | small | (not s.check_outline)
+    if s.check_outline:
+        poses = jnp.concatenate([hypotheses, refined])  # [2K, 4, 4]: input, then PnP's
+        cover = silhouettes(mesh, jnp.einsum("vij,kjl->kvil", T_cam_world, poses), crop_K,
+                            crop_size)
+        aligned = edge_alignment(crops, cover, vm).reshape(2, -1).T  # [K, 2]
+        # Moves under half a crop pixel are below what the crops' edges resolve (the check
+        # would judge noise and stop a good network's last sub-pixel steps): left to the
+        # matches.
+        small = (outline_shift(matches, crop_K, T_cam_world, hypotheses, refined)
+                 < OUTLINE_MIN_SHIFT_PX)
+        seen = (aligned[:, 1] >= aligned[:, 0]) | small
+    else:
+        aligned = jnp.full((hypotheses.shape[0], 2), jnp.nan)
+        seen = True
     accepted = (in_front & (after >= before) & seen
                 & (after >= jnp.maximum(6.0, s.min_agreement * valid)))
     refined = jnp.where(accepted[:, None, None], refined, hypotheses)
