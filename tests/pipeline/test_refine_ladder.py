@@ -22,6 +22,7 @@ from threept_jax.pipeline.refinement import (
     RefineSettings,
     agreeing_matches,
     edge_alignment,
+    outline_shift,
     refine_step,
 )
 from threept_jax.render.mesh import load_mesh, prepare_mesh, to_raster_mesh
@@ -143,6 +144,43 @@ def test_edge_alignment_against_opencv():
     got = np.asarray(edge_alignment(square, sil))
     assert got[0] > got[1] > 0 and got[2] == 0, got
     np.testing.assert_allclose(got[0], _alignment_opencv(square[0], sil[0, 0]), rtol=1e-4)
+
+
+def test_outline_shift_against_opencv():
+    """Mean displacement of the matched points' projections between two poses (OpenCV
+    projectPoints), largest over views; padding (weight 0) is left out."""
+    rng = np.random.default_rng(1)
+    K_, V, N = 2, 2, 10
+    crop_K = np.array([[[80.0, 0, 32], [0, 80, 32], [0, 0, 1]]] * V)
+    T_cw = np.stack([np.eye(4), np.eye(4)])
+    T_cw[1, :3, 3] = [5.0, -3.0, 2.0]
+    before = np.stack([np.eye(4)] * K_)
+    before[:, 2, 3] = 300.0
+    after = before.copy()
+    after[0, :3, 3] += [1.0, 0.5, 4.0]
+    after[1, :3, :3] = cv2.Rodrigues(np.array([0.0, 0.05, 0.02]))[0]
+    X = rng.uniform(-20, 20, (K_, V, N, 3))
+    w = np.ones((K_, V, N))
+    w[:, :, -3:] = 0
+    m = Matches(points_3d=jnp.asarray(X, jnp.float32), points_2d=jnp.zeros((K_, V, N, 2)),
+                weights=jnp.asarray(w, jnp.float32), similarity=jnp.zeros((K_, V, N)),
+                render_pixel=jnp.zeros((K_, V, N), jnp.int32),
+                real_pixel=jnp.zeros((K_, V, N), jnp.int32))
+    want = np.zeros(K_)
+    for k in range(K_):
+        per_view = []
+        for v in range(V):
+            uv = []
+            for T in (T_cw[v] @ before[k], T_cw[v] @ after[k]):
+                p, _ = cv2.projectPoints(X[k, v, :-3], cv2.Rodrigues(T[:3, :3])[0], T[:3, 3],
+                                         crop_K[v], None)
+                uv.append(p[:, 0])
+            per_view.append(np.linalg.norm(uv[1] - uv[0], axis=1).mean())
+        want[k] = max(per_view)
+    got = outline_shift(m, jnp.asarray(crop_K, jnp.float32), jnp.asarray(T_cw, jnp.float32),
+                        jnp.asarray(before, jnp.float32), jnp.asarray(after, jnp.float32))
+    np.testing.assert_allclose(got, want, rtol=1e-4)
+    assert want.min() > 0.1  # the poses move the points: not a trivial 0 = 0
 
 
 def test_updates_are_refused_without_consensus_and_kept_with_it(mesh):
