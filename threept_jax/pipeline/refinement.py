@@ -432,16 +432,23 @@ class RefineSettings:
                              f"None), got {self.huber_px} and {self.tukey_px}")
 
 
+def project_matches(matches: Matches, crop_K: Array, T_cam_world: Array, poses: Array
+                    ) -> tuple[Array, Array]:
+    """Where poses [K, 4, 4] put the matches' 3D points [K, V, N, 3] in the crops: pixels
+    [K, V, N, 2] (of ``crop_K`` [V, 3, 3]) and camera depth [K, V, N]."""
+    T_cam_obj = jnp.einsum("vij,kjl->kvil", T_cam_world, poses)  # [K, V, 4, 4]
+    cam = transform(T_cam_obj, matches.points_3d)  # [K, V, N, 3]
+    return project(cam, jnp.broadcast_to(crop_K, T_cam_obj.shape[:2] + (3, 3))), cam[..., 2]
+
+
 def agreeing_matches(matches: Matches, crop_K: Array, T_cam_world: Array, poses: Array,
                      gate_px: float) -> Array:
     """[K] matches (weight > 0) that pose k [K, 4, 4] projects within ``gate_px`` crop pixels of
     their real pixel, over all views; matches [K, V, N], crop_K [V, 3, 3], T_cam_world [V, 4, 4].
     A point behind a camera does not agree."""
-    T_cam_obj = jnp.einsum("vij,kjl->kvil", T_cam_world, poses)  # [K, V, 4, 4]
-    cam = transform(T_cam_obj, matches.points_3d)  # [K, V, N, 3]
-    uv = project(cam, jnp.broadcast_to(crop_K, T_cam_obj.shape[:2] + (3, 3)))
+    uv, z = project_matches(matches, crop_K, T_cam_world, poses)
     d2 = jnp.sum((uv - matches.points_2d) ** 2, -1)
-    ok = (matches.weights > 0) & (cam[..., 2] > 0) & (d2 <= gate_px * gate_px)
+    ok = (matches.weights > 0) & (z > 0) & (d2 <= gate_px * gate_px)
     return jnp.sum(ok, axis=(1, 2))
 
 
@@ -450,14 +457,11 @@ def outline_shift(matches: Matches, crop_K: Array, T_cam_world: Array, before: A
     """[K] how far (crop pixels) pose ``after`` moves the matched points' projections from
     where ``before`` puts them: the largest over views of the mean over valid matches (0 for a
     hypothesis without any)."""
-    def uv(poses):
-        T_cam_obj = jnp.einsum("vij,kjl->kvil", T_cam_world, poses)
-        cam = transform(T_cam_obj, matches.points_3d)
-        return project(cam, jnp.broadcast_to(crop_K, T_cam_obj.shape[:2] + (3, 3)))
-
-    shift = jnp.sqrt(jnp.sum((uv(after) - uv(before)) ** 2, -1))  # [K, V, N]
-    w = (matches.weights > 0).astype(jnp.float32)
-    per_view = jnp.sum(jnp.where(w > 0, shift, 0.0), -1) / jnp.maximum(jnp.sum(w, -1), 1.0)
+    uv0, _ = project_matches(matches, crop_K, T_cam_world, before)
+    uv1, _ = project_matches(matches, crop_K, T_cam_world, after)
+    shift = jnp.sqrt(jnp.sum((uv1 - uv0) ** 2, -1))  # [K, V, N]
+    w = matches.weights > 0
+    per_view = jnp.sum(jnp.where(w, shift, 0.0), -1) / jnp.maximum(jnp.sum(w, -1), 1)
     return jnp.max(per_view, -1)
 
 
