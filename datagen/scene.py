@@ -63,7 +63,13 @@ from datagen.meshes import LoadedMesh, MeshPool, MeshSkippedWarning
 from threept_jax.data.bop import BopSceneWriter, Camera, GtInstance
 from threept_jax.data.files import atomic_write_bytes
 from threept_jax.render.mesh import Mesh, load_mesh
-from threept_jax.render.mitsuba_backend import Material, MitsubaRenderer, MitsubaScene
+from threept_jax.render.mitsuba_backend import (
+    Material,
+    MeshRenderError,
+    MitsubaRenderer,
+    MitsubaScene,
+    check_renders,
+)
 
 LAYOUTS = ("drop", "float", "pack", "mixed", "cell")
 # Mixed layouts: (kind, weight).
@@ -296,6 +302,37 @@ def export_model(loaded: LoadedMesh, dst: pathlib.Path) -> None:
     write_ply(dst, m.vertices, m.faces, colors, uv, tex_name)
 
 
+def render_problems(pool: MeshPool, indices: Sequence[int]) -> dict[int, str]:
+    """``{index: "file: cause"}`` of the usable pool meshes at ``indices`` that do not path-trace.
+
+    Each mesh takes the route a scene gives it (written as a dataset model, read back) and is
+    rendered once in every material kind with its own colours or texture
+    (:func:`threept_jax.render.mitsuba_backend.check_renders`), so a mesh Mitsuba refuses is
+    named before any data work rather than as a traceback in the middle of it.
+    """
+    import tempfile
+
+    problems: dict[int, str] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in indices:
+            loaded = pool.load(i)
+            if loaded is None:
+                continue
+            rec = loaded.record
+            dst = pathlib.Path(tmp) / f"obj_{rec.obj_id:06d}.ply"
+            try:
+                export_model(loaded, dst)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    mesh = load_mesh(dst, models_info=None)
+                check_renders(mesh)
+            except (MeshRenderError, ValueError, OSError) as e:
+                problems[i] = f"{rec.path if rec.path is not None else rec.name}: {e}"
+            for f in dst.parent.glob(dst.stem + ".*"):
+                f.unlink()
+    return problems
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class ObjectAsset:
     """A usable pool mesh, ready for a scene.
@@ -391,6 +428,7 @@ class AssetCache:
             mesh = mesh.replace(name=rec.name)
             tm = trimesh.Trimesh(mesh.vertices.astype(np.float64), mesh.faces, process=False)
             shape = L.collision_shape(tm, name=rec.name)
+            check_renders(mesh)  # a mesh Mitsuba refuses is skipped here, not mid-scene
         except Exception:
             if written:  # models/ holds usable meshes only
                 for f in dst.parent.glob(dst.stem + ".*"):

@@ -139,10 +139,12 @@ def check_meshes(args) -> None:
     """Read every mesh of ``--meshes`` before any work (no workdir is made before this passes).
     No usable mesh: SystemExit naming each file and what is wrong with it. Some unusable: one
     line per skipped file, the run goes on with the others (datagen's own repeats of those
-    warnings are silenced)."""
+    warnings are silenced). A mesh that loads but does not path-trace counts as unusable, its
+    line naming the file and Mitsuba's cause (datagen skips it too)."""
     import warnings
 
     from datagen import generate as G
+    from datagen import scene as S
     from datagen.meshes import MeshSkippedWarning
 
     try:
@@ -153,6 +155,9 @@ def check_meshes(args) -> None:
     except ValueError as e:  # a missing folder, no mesh file at all
         raise SystemExit(f"error: --meshes: {e}") from None
     reasons = list(pool.skipped_reasons.values())  # each names its file
+    unrenderable = S.render_problems(pool, usable)
+    reasons += list(unrenderable.values())
+    usable = [i for i in usable if i not in unrenderable]
     if not usable:
         raise SystemExit("error: no usable mesh in --meshes; fix or remove these files:\n  "
                          + "\n  ".join(reasons))

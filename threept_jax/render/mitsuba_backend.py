@@ -85,7 +85,44 @@ def load_mitsuba(variant: str | None = None):
             )
         if mi.variant() != variant:
             mi.set_variant(variant)
+        if variant not in _registered_variants:
+            _register_vertex_colors(mi)
+            _registered_variants.add(variant)
     return mi
+
+
+_registered_variants: set[str] = set()
+VERTEX_COLOR_TEXTURE = "vertex_color_mean"
+
+
+def _register_vertex_colors(mi) -> None:
+    """Register ``vertex_color_mean``: a mesh's vertex colours as a texture that knows its mean.
+
+    Mitsuba's own ``mesh_attribute`` texture has no ``mean()``, which ``plastic`` and
+    ``roughplastic`` read to weigh sampling their specular coat against their diffuse base
+    (mitsuba3 issue #1752), so a vertex-coloured part could not be plastic. This texture looks
+    the colour up the same way and returns the mean we computed from the vertex colours.
+    """
+
+    class VertexColors(mi.Texture):
+        def __init__(self, props):
+            mi.Texture.__init__(self, props)
+            self._name = props["name"]
+            self._mean = float(props["mean"])
+
+        def eval(self, si, active=True):
+            return si.shape.eval_attribute_3(self._name, si, active)
+
+        def mean(self):
+            return self._mean
+
+        def is_spatially_varying(self):
+            return True
+
+        def to_string(self):
+            return f"VertexColors[{self._name}, mean={self._mean:.3f}]"
+
+    mi.register_texture(VERTEX_COLOR_TEXTURE, lambda props: VertexColors(props))
 
 
 def _opencv_to_mitsuba_camera() -> np.ndarray:
@@ -174,7 +211,8 @@ def _albedo_texture_dict(mi, mesh: Mesh, raw: bool) -> dict:
             "wrap_mode": "repeat",
         }
     if mesh.colors is not None:
-        return {"type": "mesh_attribute", "name": "vertex_color"}
+        mean = float(np.mean(np.asarray(mesh.colors, np.float64)))
+        return {"type": VERTEX_COLOR_TEXTURE, "name": "vertex_color", "mean": mean}
     return {"type": "rgb", "value": [DEFAULT_GREY] * 3}
 
 
@@ -669,3 +707,36 @@ def _sensor_dict(mi, K: np.ndarray, T_cam_world: np.ndarray, hw) -> dict:
         },
         "sampler": {"type": "independent"},
     }
+
+
+class MeshRenderError(ValueError):
+    """A mesh that loads but that the path tracer cannot render (the message names the cause)."""
+
+
+def check_renders(mesh: Mesh, variant: str | None = None) -> None:
+    """Path-trace ``mesh`` once in every :class:`Material` kind with its own colours or texture.
+
+    A tiny view (16 x 16 px, 1 sample): what fails here is the mesh's data meeting Mitsuba
+    (an attribute a BSDF cannot read, a texture it cannot load), not the image. Raises
+    :class:`MeshRenderError` with Mitsuba's one-line cause.
+    """
+    scene = MitsubaScene(variant, max_depth=3)
+    r = 0.5 * float(mesh.diameter or np.ptp(mesh.vertices, axis=0).max())
+    kinds = ("diffuse", "plastic", "conductor")
+    for i, kind in enumerate(kinds):
+        T = np.eye(4)
+        T[0, 3] = (i - 1) * 2.5 * r
+        scene.add_object(mesh, T, Material(kind))
+    scene.set_environment((0.8, 0.8, 0.8))
+    f = 16.0
+    K = np.array([[f, 0, 8.0], [0, f, 8.0], [0, 0, 1]])
+    T_cam_world = np.eye(4)
+    T_cam_world[2, 3] = 8.0 * r * len(kinds)
+    try:
+        out = scene.render(K, T_cam_world, (16, 16), spp=1, outputs=("rgb",))
+    except RuntimeError as e:
+        cause = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+        raise MeshRenderError(f"does not render in Mitsuba: {cause}") from e
+    if not np.isfinite(out["rgb"]).all():
+        raise MeshRenderError("renders NaN or infinite colours in Mitsuba (check its normals, "
+                              "UVs and colours for NaN)")
