@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from infer.checkpoint import load_detector, load_refiner
+from infer.contour_refine import ContourRefiner
 from infer.detect import SceneDetector
 from infer.masks import PoseRenderer
 from infer.onboarding import ONBOARD_TEMPLATES, OnboardedObject, Onboarder
@@ -41,9 +42,12 @@ from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.models.configs import DetectorConfig, RefinerConfig
 from threept_jax.models.detector import Detector
 from threept_jax.models.refiner import Refiner
+from threept_jax.pipeline.contour import ContourSettings
 from threept_jax.pipeline.refinement import RefineSettings
 from threept_jax.render import Mesh
 
+#: The ``refiner`` argument of :func:`load` (and ``--refiner``) that picks the contour refiner.
+CONTOUR = "contour"
 DEFAULT_CACHE = pathlib.Path(os.environ.get("THREEPT_CACHE", "~/.cache/threept_jax")).expanduser()
 
 __all__ = ["Camera", "Models", "TrackedFrame", "load", "run_scene", "refine", "track",
@@ -58,15 +62,18 @@ class Models:
       detector: the 3PT-D network (None when only a refiner was loaded); config: its
         ``DetectorConfig``; step: its checkpoint step.
       onboarder: turns meshes into :class:`OnboardedObject` (cached on disk under the model).
-      refiner: the 3PT-R network (None without one), with ``refiner_config``,
-        ``refiner_step`` and ``refine_settings`` (the options it was trained with).
+      refiner: the 3PT-R network, with ``refiner_config``, ``refiner_step`` and
+        ``refine_settings`` (the options it was trained with); or the training-free contour
+        refiner's :class:`~threept_jax.pipeline.contour.ContourSettings`
+        (``load(refiner="contour")``, :class:`infer.contour_refine.ContourRefiner`); None: no
+        refinement.
     """
 
     detector: Detector | None
     config: DetectorConfig | None
     step: int | None
     onboarder: Onboarder | None
-    refiner: Refiner | None = None
+    refiner: Refiner | ContourSettings | None = None
     refiner_config: RefinerConfig | None = None
     refiner_step: int | None = None
     refine_settings: RefineSettings | None = None
@@ -82,16 +89,20 @@ class Models:
             raise ValueError("onboarding needs a detector: infer.load(DETECTOR_RUN, ...)")
         return self.onboarder.onboard_all(dict(meshes), units=units)
 
-    def scene_refiner(self, objects: Sequence) -> SceneRefiner:
-        """The :class:`SceneRefiner` of these objects, built once (meshes prepared once, its
-        compiled loop kept across calls)."""
+    def scene_refiner(self, objects: Sequence) -> SceneRefiner | ContourRefiner:
+        """The refiner of these objects, built once (meshes prepared once, its compiled loop
+        kept across calls): a :class:`SceneRefiner` for a 3PT-R network, a
+        :class:`ContourRefiner` for the contour refiner."""
         if self.refiner is None:
-            raise ValueError("no refiner loaded: pass refiner=<a 3PT-R training run> to "
-                             "infer.load")
+            raise ValueError("no refiner loaded: pass refiner=<a 3PT-R training run> or "
+                             "refiner='contour' (no training) to infer.load")
         key = tuple(o.obj_id for o in objects)
         if key not in self._scene_refiners:
-            self._scene_refiners[key] = SceneRefiner(self.refiner, self.refiner_config,
-                                                     self.refine_settings, objects)
+            if isinstance(self.refiner, ContourSettings):
+                self._scene_refiners[key] = ContourRefiner(objects, self.refiner)
+            else:
+                self._scene_refiners[key] = SceneRefiner(self.refiner, self.refiner_config,
+                                                         self.refine_settings, objects)
         return self._scene_refiners[key]
 
     def scene_detector(self, objects: Sequence[OnboardedObject], **options: Any) -> SceneDetector:
@@ -118,7 +129,8 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
          num_templates: int = ONBOARD_TEMPLATES) -> Models:
     """Load a detector training run or exported model (``step``: ``"best"``, ``"latest"`` or a
     number) with an onboarder whose cache lives under ``cache_dir/onboarding`` (None: no disk
-    cache), and/or a refiner run (``refiner``, ``refiner_step``). With neither, the models
+    cache), and/or a refiner run (``refiner``, ``refiner_step``; ``"contour"``: the
+    training-free contour refiner, :mod:`infer.contour_refine`). With neither, the models
     that ship in ``models/`` (:mod:`infer.shipped`): the detector and, when one ships, the
     refiner; a missing or damaged file of theirs raises an error naming it and how to restore
     it."""
@@ -131,7 +143,9 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
         cache = None if cache_dir is None else pathlib.Path(cache_dir) / "onboarding"
         models = Models(model, cfg, step, Onboarder(model, cfg, model_id, cache_dir=cache,
                                                     num_templates=num_templates))
-    if refiner is not None:
+    if str(refiner) == CONTOUR:
+        models = dataclasses.replace(models, refiner=ContourSettings())
+    elif refiner is not None:
         net, rcfg, rstep, settings = load_refiner(refiner, refiner_step)
         models = dataclasses.replace(models, refiner=net, refiner_config=rcfg,
                                      refiner_step=rstep, refine_settings=settings)
@@ -213,7 +227,8 @@ def refine(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarray],
            objects: Sequence | Mapping[int, str | os.PathLike | Mesh],
            initial_poses: Sequence[tuple[int, np.ndarray]], models: Models, *,
            units: str = "mm") -> list[RefinedPose]:
-    """Refine poses from any method by 3PT-R render-and-compare, without the detector.
+    """Refine poses from any method by render-and-compare (3PT-R, or the contour refiner of
+    ``infer.load(refiner="contour")``), without the detector.
 
     Args:
       images, cameras: as :func:`run_scene` (one view, or several with ``T_cam_world``).

@@ -499,7 +499,10 @@ def run_refine_only(args) -> dict:
         if n < args.overlays:
             _draw(args.out / "overlays" / f"{scene_id:06d}_{im_id:06d}.png", image, drawn,
                   rows, args.overlay_threshold or 0.0, None)
-    stem = f"{method_of(args.refine_only)}-3ptr_{ds.name}-{args.split}"
+    from threept_jax.pipeline.contour import ContourSettings
+
+    by = "contour" if isinstance(nets.refiner, ContourSettings) else "3ptr"
+    stem = f"{method_of(args.refine_only)}-{by}_{ds.name}-{args.split}"
     csv_path, json_path = results.write(args.out, stem)
     print(f"refined {len(results.poses)} estimates of {len(per_image)} images: {csv_path}, "
           f"{json_path}")

@@ -134,8 +134,8 @@ def main(argv: Sequence[str] | None = None):
                      f"{args.depth_range[1]:g}")
     if args.command == "bop":
         if args.refine_only is not None and args.refiner is None and not SHIPPED["refiner"]:
-            parser.error("--refine-only needs --refiner RUN (the 3PT-R run that refines; no "
-                         "refiner ships yet)")
+            parser.error("--refine-only needs --refiner contour (no training) or --refiner RUN "
+                         "(a 3PT-R run; none ships yet)")
         if args.refine_only is not None and args.workdir is not None:
             parser.error("--refine-only refines another method's results without the detector: "
                          "drop --workdir")

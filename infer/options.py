@@ -104,11 +104,13 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
 
 
 def refiner_options(p: argparse.ArgumentParser, what: str) -> None:
-    """``--refiner RUN`` (``what`` it does for the subcommand) and ``--refiner-step``."""
-    p.add_argument("--refiner", type=pathlib.Path, default=None, metavar="RUN",
-                   help="a 3PT-R training run (train/launch.py --config "
-                        f"train/configs/refiner.py:tiny) or exported model: {what}; default: "
-                        f"{describe('refiner')}; 'none': no refiner")
+    """``--refiner contour|RUN`` (``what`` it does for the subcommand) and ``--refiner-step``."""
+    p.add_argument("--refiner", type=pathlib.Path, default=None, metavar="contour|RUN",
+                   help=f"'contour': the training-free contour refiner (colour statistics and "
+                        f"edges along the projected outline, no network); or a 3PT-R training "
+                        f"run (train/launch.py --config train/configs/refiner.py:tiny) or "
+                        f"exported model: {what}; default: {describe('refiner')}; 'none': no "
+                        f"refiner")
     p.add_argument("--refiner-step", type=checkpoint_step, default="best",
                    help="refiner checkpoint: best, latest or a step number")
 
@@ -140,7 +142,8 @@ def load_models(args, detector: bool = True):
     if hasattr(args, "refiner") and str(args.refiner) != "none":
         refiner = args.refiner or shipped("refiner")
     if workdir is None and refiner is None:
-        raise ValueError("no model to load: pass --refiner RUN (no refiner ships yet)")
+        raise ValueError("no model to load: pass --refiner contour (no training) or --refiner "
+                         "RUN (no 3PT-R ships yet)")
     return load(workdir, args.step, refiner=refiner,
                 refiner_step=getattr(args, "refiner_step", "best"), cache_dir=args.cache_dir,
                 num_templates=args.num_templates)

@@ -138,42 +138,15 @@ class SceneRefiner:
         """Refine instances ``obj_ids[i]`` from ``hypotheses[i]`` ([K_i, 4, 4] or [4, 4], world
         frame, best first) in the views ``images`` (uint8 [H, W, 3], one size) with intrinsics
         ``Ks`` [V, 3, 3] and extrinsics ``T_cam_world`` [V, 4, 4] (None: one view)."""
-        V = len(images)
-        if V == 0:
-            raise ValueError("refinement needs at least one image")
-        shapes = {np.shape(im) for im in images}
-        if len(shapes) != 1 or len(next(iter(shapes))) != 3:
-            raise ValueError(f"the views must be uint8 [H, W, 3] images of one size, got "
-                             f"{sorted(shapes)}")
-        T_cw = (np.tile(np.eye(4, dtype=np.float32), (1, 1, 1)) if T_cam_world is None
-                else np.asarray(T_cam_world, np.float32))
-        if T_cw.shape != (V, 4, 4) or np.shape(Ks) != (V, 3, 3):
-            raise ValueError(f"{V} views need Ks [V, 3, 3] and T_cam_world [V, 4, 4], got "
-                             f"{np.shape(Ks)} and {T_cw.shape}")
-        n = len(obj_ids)
-        if n != len(hypotheses):
-            raise ValueError(f"{n} objects but {len(hypotheses)} hypothesis sets")
-        if n == 0:
+        padded = pad_instances(images, Ks, T_cam_world, obj_ids, hypotheses,
+                               self.meshes.obj_ids, self.num_hypotheses)
+        if padded is None:
             return []
-        unknown = sorted({int(o) for o in obj_ids} - set(self.meshes.obj_ids.tolist()))
-        if unknown:
-            raise KeyError(f"objects {unknown} are not in this refiner's object set "
-                           f"{self.meshes.obj_ids.tolist()}")
-        N, K = pad_to_bin(n), self.num_hypotheses
-        hyps = np.tile(np.eye(4, dtype=np.float32), (N, K, 1, 1))
-        hyps[:, :, 2, 3] = 1000.0  # padding instances: any pose in front of the cameras
-        for i, h in enumerate(hypotheses):
-            h = np.asarray(h, np.float32).reshape(-1, 4, 4)[:K]
-            if not np.all(np.isfinite(h)):
-                raise ValueError(f"hypotheses of instance {i} (object {obj_ids[i]}) are not "
-                                 "finite")
-            hyps[i, :len(h)] = h
-            hyps[i, len(h):] = h[-1]
-        ids = [int(o) for o in obj_ids] + [int(obj_ids[0])] * (N - n)
+        T_cw, hyps, ids, inst_mask = padded
+        N, V = len(ids), len(images)
         mesh_index = np.array([self.meshes.index(o) for o in ids], np.int32)
         sym = np.stack([self.symmetries[o][0] for o in ids])
         sym_mask = np.stack([self.symmetries[o][1] for o in ids])
-        inst_mask = np.arange(N) < n
         view_mask = np.ones((N, V), bool)
         out = self._run(self._params, self.meshes.stacked, mesh_index,
                         jnp.asarray(np.stack(images)), np.asarray(Ks, np.float32), T_cw, hyps,
@@ -181,7 +154,7 @@ class SceneRefiner:
         out = jax.device_get(out)
         hw = np.shape(images[0])[:2]
         result = []
-        for i in range(n):
+        for i in range(len(obj_ids)):
             masks = paste_masks(np.asarray(out.mask_logits[i]), np.asarray(out.boxes[i]), hw)
             result.append(RefinedPose(obj_id=int(obj_ids[i]),
                                       T_world_obj=np.asarray(out.poses[i], np.float64),
@@ -189,3 +162,48 @@ class SceneRefiner:
                                       history=np.asarray(out.history[i], np.float64),
                                       masks={v: masks[v] for v in range(V)}))
         return result
+
+
+def pad_instances(images: Sequence[np.ndarray], Ks: np.ndarray, T_cam_world: np.ndarray | None,
+                  obj_ids: Sequence[int], hypotheses: Sequence[np.ndarray], known: np.ndarray,
+                  num_hypotheses: int):
+    """The checked, padded inputs of a refiner call (:class:`SceneRefiner`,
+    :class:`infer.contour_refine.ContourRefiner`): ``(T_cam_world [V, 4, 4] float32, hypotheses
+    [N, K, 4, 4] float32, obj_ids [N], instance_mask [N])`` with N the instance bin of
+    :func:`pad_to_bin` and K = ``num_hypotheses`` (each set cut to K or padded by repeating its
+    last; padding instances sit 1 m in front of the cameras); None when there is no instance.
+    Raises ValueError naming what is wrong (image shapes, camera counts, non-finite poses) and
+    KeyError for objects outside ``known``."""
+    V = len(images)
+    if V == 0:
+        raise ValueError("refinement needs at least one image")
+    shapes = {np.shape(im) for im in images}
+    if len(shapes) != 1 or len(next(iter(shapes))) != 3:
+        raise ValueError(f"the views must be uint8 [H, W, 3] images of one size, got "
+                         f"{sorted(shapes)}")
+    T_cw = (np.tile(np.eye(4, dtype=np.float32), (1, 1, 1)) if T_cam_world is None
+            else np.asarray(T_cam_world, np.float32))
+    if T_cw.shape != (V, 4, 4) or np.shape(Ks) != (V, 3, 3):
+        raise ValueError(f"{V} views need Ks [V, 3, 3] and T_cam_world [V, 4, 4], got "
+                         f"{np.shape(Ks)} and {T_cw.shape}")
+    n = len(obj_ids)
+    if n != len(hypotheses):
+        raise ValueError(f"{n} objects but {len(hypotheses)} hypothesis sets")
+    if n == 0:
+        return None
+    unknown = sorted({int(o) for o in obj_ids} - set(np.asarray(known).tolist()))
+    if unknown:
+        raise KeyError(f"objects {unknown} are not in this refiner's object set "
+                       f"{np.asarray(known).tolist()}")
+    N, K = pad_to_bin(n), int(num_hypotheses)
+    hyps = np.tile(np.eye(4, dtype=np.float32), (N, K, 1, 1))
+    hyps[:, :, 2, 3] = 1000.0  # padding instances: any pose in front of the cameras
+    for i, h in enumerate(hypotheses):
+        h = np.asarray(h, np.float32).reshape(-1, 4, 4)[:K]
+        if not np.all(np.isfinite(h)):
+            raise ValueError(f"hypotheses of instance {i} (object {obj_ids[i]}) are not "
+                             "finite")
+        hyps[i, :len(h)] = h
+        hyps[i, len(h):] = h[-1]
+    ids = [int(o) for o in obj_ids] + [int(obj_ids[0])] * (N - n)
+    return T_cw, hyps, ids, np.arange(N) < n

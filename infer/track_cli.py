@@ -242,8 +242,8 @@ def run_track(args) -> dict:
     Ks, _ = prepare_views(first, cameras)  # K against the frame size, before the slow work
     init = None if args.init is None else read_init(args.init, set(meshes))
     if args.refiner is None and not SHIPPED["refiner"]:
-        raise ValueError("track refines every frame: pass --refiner RUN (a 3PT-R run; no "
-                         "refiner ships yet)")
+        raise ValueError("track refines every frame: pass --refiner contour (no training) or "
+                         "--refiner RUN (a 3PT-R run; none ships yet)")
     # The detector finds the first frame's objects (no --init) and re-detects (--min-score).
     detecting = init is None or args.min_score is not None or args.workdir is not None
     models = load_models(args, detector=detecting)

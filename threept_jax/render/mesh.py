@@ -47,8 +47,15 @@ def read_trimesh(path: str | pathlib.Path, **kwargs):
     elements than its PLY header declares (trimesh returns a partial mesh), or more than
     ``MAX_MESH_FACES`` faces raises ValueError naming the file, before any processing.
     """
+    import logging
+
     import trimesh
 
+    # trimesh logs a whole traceback for a texture named in a PLY but missing beside it;
+    # load_mesh says so in one warning line instead.
+    trimesh_log = logging.getLogger("trimesh")
+    level = trimesh_log.level
+    trimesh_log.setLevel(logging.CRITICAL)
     try:
         tm = trimesh.load(str(path), process=False, force="mesh", **kwargs)
         if not isinstance(tm, trimesh.Trimesh):
@@ -60,6 +67,8 @@ def read_trimesh(path: str | pathlib.Path, **kwargs):
             f"{path}: cannot read the mesh ({type(e).__name__}: {e}); the file is corrupt, "
             "truncated or not a mesh"
         ) from None
+    finally:
+        trimesh_log.setLevel(level)
     if str(path).lower().endswith(".ply"):
         check_ply_counts(path, len(vertices), len(faces))
     validate_mesh_arrays(vertices, faces, path)

@@ -1,0 +1,113 @@
+"""The training-free refiner: pose hypotheses refined by the image's own contour evidence.
+
+:class:`ContourRefiner` has the call of :class:`infer.refine.SceneRefiner` (N instances, each
+with K hypotheses, world frame, best first, in V calibrated views) and returns the same
+:class:`infer.refine.RefinedPose` records, so ``run_scene``, ``refine``, ``track`` and the
+commands take either (``infer.load(refiner="contour")``, ``--refiner contour``). It runs
+:func:`threept_jax.pipeline.contour.refine_poses` (correspondence lines along the projected
+contour, colour statistics and edges, Gauss-Newton summed over views, coarse to fine) on every
+hypothesis of every instance in one compiled call, each hypothesis kept at its start where the
+refined pose scores lower, and keeps each instance's best-scored hypothesis. Instances hide
+each other's lines: an occluder map of every instance at its start pose is rendered first.
+Masks are the visible silhouettes at the kept poses (each pixel to the nearest instance).
+
+Compiled once per (instance bin, hypothesis bin, views, image size).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from infer.refine import RefinedPose, pad_instances
+from threept_jax.data.refiner_input import RefinerMeshes
+from threept_jax.geometry.validate import scale_intrinsics
+from threept_jax.pipeline.contour import (
+    ContourSettings,
+    contour_model,
+    occluder_maps,
+    refine_poses,
+)
+from threept_jax.pipeline.refine_loop import pad_to_bin
+from threept_jax.render.mesh import prepare_mesh
+
+#: Longest side of the occluder maps (they only decide which line samples another instance
+#: hides, so a reduced image is enough).
+OCCLUDER_SIDE = 320
+
+
+class ContourRefiner:
+    """Contour-evidence refinement of one object set (module docstring).
+
+    ``objects``: anything with ``obj_id`` and ``mesh`` (:class:`infer.refine.RefineObject`,
+    :class:`infer.onboarding.OnboardedObject`). Building it renders each mesh's contour model
+    (:func:`~threept_jax.pipeline.contour.contour_model`).
+    """
+
+    def __init__(self, objects: Sequence, settings: ContourSettings | None = None):
+        if not objects:
+            raise ValueError("ContourRefiner needs at least one object")
+        self.settings = settings or ContourSettings()
+        objects = sorted(objects, key=lambda o: o.obj_id)
+        self.obj_ids = np.array([o.obj_id for o in objects], np.int64)
+        self.model = contour_model([o.mesh for o in objects])
+        self.meshes = RefinerMeshes.from_meshes(
+            {o.obj_id: prepare_mesh(o.mesh, max_faces=2048, texture_size=None) for o in objects})
+        self.traces = 0
+        settings = self.settings
+
+        def run(model, meshes, images, Ks, Ks_occ, T_cw, hyps, mesh_index, inst_mask, hw_occ):
+            self.traces += 1  # runs only while tracing
+            N, K = hyps.shape[:2]
+            V = images.shape[0]
+            occ_id, occ_depth = occluder_maps(meshes, mesh_index, hyps[:, 0], Ks_occ, T_cw,
+                                              hw_occ, inst_mask)
+            flat = hyps.reshape(N * K, 4, 4)
+            obj = jnp.repeat(mesh_index, K)
+            inst = jnp.repeat(jnp.arange(N, dtype=jnp.int32), K)
+            vm = jnp.ones((N * K, V), bool)
+            res = refine_poses(model, images, Ks, T_cw, flat, obj, inst, occ_id, occ_depth, vm,
+                               settings)
+            scores = res.scores.reshape(N, K)
+            best = jnp.argmax(scores, -1)
+            poses = res.poses.reshape(N, K, 4, 4)[jnp.arange(N), best]
+            refined_raw = res.refined_scores.reshape(N, K)[jnp.arange(N), best]
+            ids, _ = occluder_maps(meshes, mesh_index, poses, Ks, T_cw, images.shape[1:3],
+                                   inst_mask)
+            return poses, scores[jnp.arange(N), best], refined_raw, ids
+
+        self._run = jax.jit(run, static_argnames=("hw_occ",))
+
+    def __call__(self, images: Sequence[np.ndarray], Ks: np.ndarray,
+                 T_cam_world: np.ndarray | None, obj_ids: Sequence[int],
+                 hypotheses: Sequence[np.ndarray]) -> list[RefinedPose]:
+        """Refine instances ``obj_ids[i]`` from ``hypotheses[i]`` ([K_i, 4, 4] or [4, 4], world
+        frame, best first) in the views ``images`` (uint8 [H, W, 3], one size) with intrinsics
+        ``Ks`` [V, 3, 3] and extrinsics ``T_cam_world`` [V, 4, 4] (None: one view)."""
+        k_max = max((np.asarray(h).reshape(-1, 4, 4).shape[0] for h in hypotheses), default=1)
+        padded = pad_instances(images, Ks, T_cam_world, obj_ids, hypotheses,
+                               self.obj_ids, pad_to_bin(k_max, (1, 2, 4, 8)))
+        if padded is None:
+            return []
+        T_cw, hyps, ids, inst_mask = padded
+        mesh_index = np.searchsorted(self.obj_ids, ids).astype(np.int32)
+        H, W = np.shape(images[0])[:2]
+        s = min(1.0, OCCLUDER_SIDE / max(H, W))
+        hw_occ = (max(int(round(H * s)), 1), max(int(round(W * s)), 1))
+        Ks = np.asarray(Ks, np.float64)
+        Ks_occ = np.stack([scale_intrinsics(K, (H, W), hw_occ) for K in Ks]).astype(np.float32)
+        poses, scores, _, masks_id = jax.device_get(self._run(
+            self.model, self.meshes.stacked, jnp.asarray(np.stack(images)),
+            Ks.astype(np.float32), Ks_occ, T_cw, hyps, mesh_index, inst_mask, hw_occ=hw_occ))
+        out = []
+        for i in range(len(obj_ids)):
+            start = np.asarray(hyps[i, 0], np.float64)
+            pose = np.asarray(poses[i], np.float64)
+            out.append(RefinedPose(obj_id=int(obj_ids[i]), T_world_obj=pose,
+                                   score=float(scores[i]),
+                                   history=np.stack([start, pose, pose]),
+                                   masks={v: masks_id[v] == i for v in range(len(images))}))
+        return out
