@@ -5,13 +5,13 @@ contour model), float64 central differences (the Gauss-Newton Jacobian), and gro
 rasterised scenes (convergence, safety). Tiny contour models (100 views) keep it fast.
 """
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-import jax
-import jax.numpy as jnp
 from infer.contour_refine import ContourRefiner
 from infer.refine import RefineObject
 from threept_jax.geometry.camera import look_at
