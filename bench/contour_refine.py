@@ -120,13 +120,16 @@ def recall(e_mssd, diam):
 def run(name, ds, groups, views, rungs, settings, rng_seed=0):
     objects = refine_objects({k: m.path for k, m in ds.models().items()})
     t = time.perf_counter()
+    print(f"{name}: contour models of {len(objects)} objects ...", flush=True)
     refiner = ContourRefiner(objects, settings)
     onboard_s = (time.perf_counter() - t) / len(objects)
     eval_models = {}
     for o in objects:
         v = np.asarray(o.mesh.vertices, np.float64)
         pts = v[np.random.default_rng(0).choice(len(v), min(len(v), 1000), replace=False)]
-        eval_models[o.obj_id] = {"pts": pts, "sym": o.symmetries, "diam": float(o.mesh.diameter),
+        sym = np.asarray(o.symmetries, np.float64)
+        eval_models[o.obj_id] = {"pts": pts, "sym": (sym[:, :3, :3], sym[:, :3, 3]),
+                                 "diam": float(o.mesh.diameter),
                                  "center": np.asarray(o.mesh.center, np.float64)}
     rows, cold, warm, n_obj_views = [], None, [], 0
     iters = len(settings.scales) * settings.iterations + 2  # + the two scores
@@ -177,8 +180,9 @@ def score_test(ds, groups, views, settings, num=5, seed=1):
             for _ in range(num):
                 s = jitter(T_gt, np.asarray(m.mesh.center, np.float64), 10.0, 30.0, rng)
                 r = refiner(images, Ks, T_cw if views > 1 else None, [o], [s])[0]
+                sym = np.asarray(m.symmetries, np.float64)
                 e = mssd(r.T_world_obj[:3, :3], r.T_world_obj[:3, 3:4], T_gt[:3, :3],
-                         T_gt[:3, 3:4], pts, m.symmetries)
+                         T_gt[:3, 3:4], pts, (sym[:, :3, :3], sym[:, :3, 3]))
                 res.append((r.score, e))
             res = np.array(res)
             total += 1
