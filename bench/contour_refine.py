@@ -117,12 +117,17 @@ def recall(e_mssd, diam):
                           for t in MSSD_THRESHOLDS]))
 
 
-def run(name, ds, groups, views, rungs, settings, rng_seed=0):
+def build(ds, settings):
+    """(the dataset's objects, their ContourRefiner, seconds per object to build it)."""
     objects = refine_objects({k: m.path for k, m in ds.models().items()})
     t = time.perf_counter()
-    print(f"{name}: contour models of {len(objects)} objects ...", flush=True)
+    print(f"contour models of {len(objects)} objects ...", flush=True)
     refiner = ContourRefiner(objects, settings)
-    onboard_s = (time.perf_counter() - t) / len(objects)
+    return objects, refiner, (time.perf_counter() - t) / len(objects)
+
+
+def run(name, groups, views, rungs, settings, built, rng_seed=0):
+    objects, refiner, onboard_s = built
     eval_models = {}
     for o in objects:
         v = np.asarray(o.mesh.vertices, np.float64)
@@ -155,7 +160,7 @@ def run(name, ds, groups, views, rungs, settings, rng_seed=0):
                 after.append((*errors(r.T_world_obj, T_gt, m), m["diam"]))
         b, a = np.array(before), np.array(after)
         rows.append({
-            "data": name, "views": views, "rung": f"{deg} deg / {mm} mm", "instances": len(b),
+            "data": name, "views": views, "rung": f"{deg:g} deg / {mm:g} mm", "instances": len(b),
             "rot_start": float(np.median(b[:, 0])), "rot_after": float(np.median(a[:, 0])),
             "trans_start": float(np.median(b[:, 1])), "trans_after": float(np.median(a[:, 1])),
             "ar_start": recall(b[:, 2], b[:, 3]), "ar_after": recall(a[:, 2], a[:, 3]),
@@ -165,9 +170,79 @@ def run(name, ds, groups, views, rungs, settings, rng_seed=0):
                   "contour_model_s_per_object": onboard_s}
 
 
-def score_test(ds, groups, views, settings, num=5, seed=1):
-    objects = refine_objects({k: m.path for k, m in ds.models().items()})
-    refiner = ContourRefiner(objects, settings)
+RAPID_KINDS = ("rapid", "ols", "gos")
+
+
+def opencv_refine(kind: str, image: np.ndarray, mesh, K: np.ndarray, T_cam_obj: np.ndarray,
+                  iterations: int = 1) -> np.ndarray:
+    """OpenCV contrib's contour trackers (``cv2.rapid``: RAPID, OLS, GOS) run ``iterations``
+    times on one image from T_cam_obj, as a tracker runs on a still frame (100 control points,
+    20 px search lines); the pose it ends at (its input where it fails). One iteration is their
+    best of 1, 3 and 10 from 10 degree / 30 mm starts on the cell scenes (more drift further)."""
+    import cv2
+
+    pts = np.ascontiguousarray(mesh.vertices, np.float32)
+    tris = np.ascontiguousarray(mesh.faces, np.int32)
+    bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    rvec, _ = cv2.Rodrigues(T_cam_obj[:3, :3])
+    tvec = T_cam_obj[:3, 3:4].astype(np.float64).copy()
+    Kd = np.asarray(K, np.float64)
+    tracker = {"rapid": lambda: cv2.rapid.Rapid.create(pts, tris),
+               "ols": lambda: cv2.rapid.OLSTracker.create(pts, tris),
+               "gos": lambda: cv2.rapid.GOSTracker.create(pts, tris)}[kind]()
+    for _ in range(iterations):
+        try:
+            _, rvec, tvec = tracker.compute(bgr, 100, 20, Kd, rvec, tvec)
+        except cv2.error:
+            break
+    out = np.eye(4)
+    out[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64))[0]
+    out[:3, 3] = np.asarray(tvec, np.float64).ravel()
+    return out if np.all(np.isfinite(out)) else T_cam_obj
+
+
+def run_opencv(name, ds, groups, rungs, rng_seed=0):
+    """The 1-view rows of :func:`run` for each ``cv2.rapid`` tracker on the same starts."""
+    from threept_jax.render.mesh import prepare_mesh
+
+    objects = {o.obj_id: o for o in refine_objects({k: m.path for k, m in ds.models().items()})}
+    small = {k: prepare_mesh(o.mesh, max_faces=2048, texture_size=None)
+             for k, o in objects.items()}
+    rows = []
+    for kind in RAPID_KINDS:
+        for deg, mm in rungs:
+            rng = np.random.default_rng(rng_seed)
+            before, after = [], []
+            t = time.perf_counter()
+            for images, Ks, T_cw, insts in tqdm(groups, desc=f"cv2.rapid {kind} {deg}/{mm}",
+                                                leave=False):
+                for o, T_gt in insts:
+                    m = objects[o]
+                    sym = np.asarray(m.symmetries, np.float64)
+                    em = {"pts": np.asarray(m.mesh.vertices, np.float64)[::max(
+                        1, m.mesh.num_vertices // 1000)], "sym": (sym[:, :3, :3], sym[:, :3, 3])}
+                    s = jitter(T_gt, np.asarray(m.mesh.center, np.float64), deg, mm, rng)
+                    # The world frame is the first camera's when the views carry T_cam_world.
+                    T0 = T_cw[0]
+                    r = np.linalg.inv(T0) @ opencv_refine(kind, images[0], small[o], Ks[0],
+                                                          T0 @ s)
+                    before.append((*errors(s, T_gt, em), float(m.mesh.diameter)))
+                    after.append((*errors(r, T_gt, em), float(m.mesh.diameter)))
+            b, a = np.array(before), np.array(after)
+            rows.append({
+                "data": name, "views": 1, "rung": f"{deg:g} deg / {mm:g} mm",
+                "instances": len(b), "evidence": f"cv2.rapid {kind}",
+                "rot_start": float(np.median(b[:, 0])), "rot_after": float(np.median(a[:, 0])),
+                "trans_start": float(np.median(b[:, 1])),
+                "trans_after": float(np.median(a[:, 1])),
+                "ar_start": recall(b[:, 2], b[:, 3]), "ar_after": recall(a[:, 2], a[:, 3]),
+                "worse": float(np.mean(a[:, 2] > b[:, 2] + 0.01 * b[:, 3])),
+                "seconds_per_instance": (time.perf_counter() - t) / max(len(b), 1)})
+    return rows
+
+
+def score_test(groups, views, built, num=5, seed=1):
+    objects, refiner, _ = built
     models = {o.obj_id: o for o in objects}
     rng = np.random.default_rng(seed)
     picked, total = 0, 0
@@ -197,6 +272,9 @@ def main(argv=None):
     p.add_argument("--evidence", nargs="+", default=["both"], choices=["region", "edges", "both"])
     p.add_argument("--min-visib", type=float, default=0.5)
     p.add_argument("--no-score-test", action="store_true")
+    p.add_argument("--opencv", action="store_true",
+                   help="also run OpenCV contrib's cv2.rapid trackers (RAPID, OLS, GOS) on the "
+                        "same 1-view starts")
     p.add_argument("--out", type=pathlib.Path, default=None)
     args = p.parse_args(argv)
     warnings.simplefilter("ignore")
@@ -208,15 +286,18 @@ def main(argv=None):
         settings = ContourSettings(evidence=evidence)
         for name, views_list in (("cell", (1,)), ("rig", (1, 3))):
             ds, groups = load_groups(args.data / name, args.min_visib)
+            built = build(ds, settings)
             for views in views_list:
-                rows, t = run(name, ds, groups, views, rungs, settings)
+                rows, t = run(name, groups, views, rungs, settings, built)
                 for r in rows:
                     r["evidence"] = evidence
                 t["evidence"] = evidence
                 table += rows
                 times.append(t)
+                if args.opencv and views == 1 and evidence == args.evidence[0]:
+                    table += run_opencv(name, ds, groups, rungs)
                 if not args.no_score_test and views == views_list[-1]:
-                    acc, n = score_test(ds, groups, views, settings)
+                    acc, n = score_test(groups, views, built)
                     scores.append({"data": name, "views": views, "evidence": evidence,
                                    "best_of_5_picked": acc, "instances": n})
     print("\n| evidence | data | views | rung | n | rotation deg start -> after (ratio) | "

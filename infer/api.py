@@ -77,6 +77,7 @@ class Models:
     refiner_config: RefinerConfig | None = None
     refiner_step: int | None = None
     refine_settings: RefineSettings | None = None
+    cache_dir: pathlib.Path | None = None
     # Per-object-set caches; not init fields, so a dataclasses.replace starts empty ones.
     _scene_detectors: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
     _pose_renderers: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
@@ -99,7 +100,8 @@ class Models:
         key = tuple(o.obj_id for o in objects)
         if key not in self._scene_refiners:
             if isinstance(self.refiner, ContourSettings):
-                self._scene_refiners[key] = ContourRefiner(objects, self.refiner)
+                cache = None if self.cache_dir is None else self.cache_dir / "contours"
+                self._scene_refiners[key] = ContourRefiner(objects, self.refiner, cache)
             else:
                 self._scene_refiners[key] = SceneRefiner(self.refiner, self.refiner_config,
                                                          self.refine_settings, objects)
@@ -130,7 +132,8 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
     """Load a detector training run or exported model (``step``: ``"best"``, ``"latest"`` or a
     number) with an onboarder whose cache lives under ``cache_dir/onboarding`` (None: no disk
     cache), and/or a refiner run (``refiner``, ``refiner_step``; ``"contour"``: the
-    training-free contour refiner, :mod:`infer.contour_refine`). With neither, the models
+    training-free contour refiner, :mod:`infer.contour_refine`, its contours cached under
+    ``cache_dir/contours``). With neither, the models
     that ship in ``models/`` (:mod:`infer.shipped`): the detector and, when one ships, the
     refiner; a missing or damaged file of theirs raises an error naming it and how to restore
     it."""
@@ -144,7 +147,9 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
         models = Models(model, cfg, step, Onboarder(model, cfg, model_id, cache_dir=cache,
                                                     num_templates=num_templates))
     if str(refiner) == CONTOUR:
-        models = dataclasses.replace(models, refiner=ContourSettings())
+        models = dataclasses.replace(models, refiner=ContourSettings(),
+                                     cache_dir=None if cache_dir is None else
+                                     pathlib.Path(cache_dir))
     elif refiner is not None:
         net, rcfg, rstep, settings = load_refiner(refiner, refiner_step)
         models = dataclasses.replace(models, refiner=net, refiner_config=rcfg,

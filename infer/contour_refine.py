@@ -16,6 +16,9 @@ Compiled once per (instance bin, hypothesis bin, views, image size).
 
 from __future__ import annotations
 
+import hashlib
+import os
+import pathlib
 from collections.abc import Sequence
 
 import jax
@@ -23,13 +26,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from infer.refine import RefinedPose, pad_instances
+from threept_jax.data.files import atomic_savez
 from threept_jax.data.refiner_input import RefinerMeshes
 from threept_jax.geometry.validate import scale_intrinsics
 from threept_jax.pipeline.contour import (
     ContourSettings,
-    contour_model,
+    mesh_contours,
     occluder_maps,
     refine_poses,
+    stack_contours,
 )
 from threept_jax.pipeline.refine_loop import pad_to_bin
 from threept_jax.render.mesh import prepare_mesh
@@ -39,21 +44,48 @@ from threept_jax.render.mesh import prepare_mesh
 OCCLUDER_SIDE = 320
 
 
+#: Bumped when ``mesh_contours``' output changes, so that old cache files are not read.
+CONTOUR_CACHE_VERSION = 1
+
+
+def _cached_contours(mesh, cache: pathlib.Path | None) -> dict:
+    """``mesh_contours(mesh)``, read from / written to ``cache`` keyed by the mesh's arrays."""
+    if cache is None:
+        return mesh_contours(mesh)
+    h = hashlib.sha256(f"contours-v{CONTOUR_CACHE_VERSION}".encode())
+    for a in (mesh.vertices, mesh.faces):
+        h.update(np.ascontiguousarray(a).tobytes())
+    path = cache / f"{h.hexdigest()[:32]}.npz"
+    if path.exists():
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return {k: z[k] for k in z.files}
+        except (OSError, ValueError):  # a damaged file is rebuilt
+            pass
+    out = mesh_contours(mesh)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_savez(path, **out)
+    return out
+
+
 class ContourRefiner:
     """Contour-evidence refinement of one object set (module docstring).
 
     ``objects``: anything with ``obj_id`` and ``mesh`` (:class:`infer.refine.RefineObject`,
-    :class:`infer.onboarding.OnboardedObject`). Building it renders each mesh's contour model
-    (:func:`~threept_jax.pipeline.contour.contour_model`).
+    :class:`infer.onboarding.OnboardedObject`). Building it renders each mesh's contours
+    (:func:`~threept_jax.pipeline.contour.mesh_contours`, a few seconds per mesh on 2 CPU
+    cores), cached under ``cache_dir`` (None: no disk cache) by the mesh's arrays.
     """
 
-    def __init__(self, objects: Sequence, settings: ContourSettings | None = None):
+    def __init__(self, objects: Sequence, settings: ContourSettings | None = None,
+                 cache_dir: str | os.PathLike | None = None):
         if not objects:
             raise ValueError("ContourRefiner needs at least one object")
         self.settings = settings or ContourSettings()
         objects = sorted(objects, key=lambda o: o.obj_id)
         self.obj_ids = np.array([o.obj_id for o in objects], np.int64)
-        self.model = contour_model([o.mesh for o in objects])
+        cache = None if cache_dir is None else pathlib.Path(cache_dir)
+        self.model = stack_contours([_cached_contours(o.mesh, cache) for o in objects])
         self.meshes = RefinerMeshes.from_meshes(
             {o.obj_id: prepare_mesh(o.mesh, max_faces=2048, texture_size=None) for o in objects})
         self.traces = 0

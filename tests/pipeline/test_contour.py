@@ -201,7 +201,7 @@ def test_api_refine_with_the_contour_refiner(refiner):
     from infer.api import Models
 
     _, mesh = refiner
-    models = infer.load(None, refiner="contour")
+    models = infer.load(None, refiner="contour", cache_dir=None)
     assert isinstance(models, Models) and isinstance(models.refiner, C.ContourSettings)
     rng = np.random.default_rng(5)
     images, Ks, T_cw, T_gt = _scene(mesh, 1, seed=2)
@@ -212,3 +212,27 @@ def test_api_refine_with_the_contour_refiner(refiner):
                        [(1, T_cw[0] @ start)], models)
     assert _err(out[0].T_world_obj, T_cw[0] @ T_gt)[0] <= _err(start, T_gt)[0] + 0.5
     jax.clear_caches()
+
+
+def test_contours_are_cached_per_mesh_and_a_damaged_file_is_rebuilt(tmp_path, monkeypatch):
+    import infer.contour_refine as CR
+
+    calls = []
+    real = CR.mesh_contours
+
+    def counted(mesh, **kw):
+        calls.append(mesh)
+        return real(mesh, num_views=20, num_points=16)
+
+    monkeypatch.setattr(CR, "mesh_contours", counted)
+    a = CR._cached_contours(_cube(), tmp_path)
+    b = CR._cached_contours(_cube(), tmp_path)
+    assert len(calls) == 1
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+    (f,) = tmp_path.glob("*.npz")
+    f.write_bytes(b"damaged")
+    c = CR._cached_contours(_cube(), tmp_path)
+    assert len(calls) == 2 and np.array_equal(c["points"], a["points"])
+    CR._cached_contours(_cube(side=50.0), tmp_path)  # another mesh, another file
+    assert len(calls) == 3 and len(list(tmp_path.glob("*.npz"))) == 2

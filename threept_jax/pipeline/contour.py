@@ -111,60 +111,64 @@ def _sample_contours(mask: np.ndarray, num_points: int):
     return pts[idx], nrm[idx]
 
 
-def contour_model(meshes: Sequence[Mesh], num_views: int = 1000, num_points: int = 200,
-                  render_size: int = 256, max_faces: int | None = 4096) -> ContourModel:
-    """The :class:`ContourModel` of ``meshes`` (mm): silhouettes rendered by the JAX
-    rasterizer from ``num_views`` Fibonacci directions at ``render_size`` px, a distant camera
-    (10 radii) so that the silhouette is nearly the orthographic one; ``num_points`` points per
-    view. Meshes are decimated to ``max_faces`` for the renders only."""
+def mesh_contours(mesh: Mesh, num_views: int = 1000, num_points: int = 200,
+                  render_size: int = 256, max_faces: int | None = 4096) -> dict[str, np.ndarray]:
+    """The contour points of one mesh (mm), as NumPy arrays ``directions`` [D, 3], ``points``
+    and ``normals`` [D, N, 3], ``valid`` [D, N], ``center`` [3], ``radius`` []: silhouettes
+    rendered by the JAX rasterizer from ``num_views`` Fibonacci directions at ``render_size``
+    px, by a distant camera (10 radii) so that each is nearly the orthographic one;
+    ``num_points`` points per view. The mesh is decimated to ``max_faces`` for the renders."""
     dirs = fibonacci_directions(num_views)
-    out = {k: [] for k in ("points", "normals", "valid")}
-    centers, radii = [], []
-    for mesh in meshes:
-        prepared = prepare_mesh(mesh, max_faces=max_faces, texture_size=None)
-        # One face bucket for every mesh under the budget: one compiled renderer for all.
-        rm = to_raster_mesh(prepared, face_bucket=bucket_size(max(prepared.num_faces,
-                                                                  max_faces or 0)))
-        c = np.asarray(prepared.center, np.float64)
-        r = float(prepared.radius)
-        dist = 10.0 * r
-        f = 0.45 * render_size * dist / r
-        K = np.array([[f, 0, (render_size - 1) / 2], [0, f, (render_size - 1) / 2], [0, 0, 1]])
-        ups = np.where(np.abs(dirs[:, 2:3]) > 0.9, [[1.0, 0, 0]], [[0, 0, 1.0]])
-        T = np.stack([np.asarray(look_at(c + dist * d, c, up), np.float64)
-                      for d, up in zip(dirs, ups)])
-        depth = []
-        for s in range(0, num_views, 128):  # bounded memory
-            depth.append(np.asarray(render(rm, T[s:s + 128].astype(np.float32), K,
-                                           (render_size, render_size), ("depth",))["depth"]))
-        depth = np.concatenate(depth)
-        P = np.zeros((num_views, num_points, 3))
-        Nn = np.zeros((num_views, num_points, 3))
-        valid = np.zeros((num_views, num_points), bool)
-        for v in range(num_views):
-            got = _sample_contours(depth[v] > 0, num_points)
-            if got is None:
-                continue
-            uv, n2 = got
-            z = depth[v][uv[:, 1].astype(int), uv[:, 0].astype(int)]
-            x_cam = np.stack([(uv[:, 0] - K[0, 2]) * z / f, (uv[:, 1] - K[1, 2]) * z / f, z], -1)
-            R, t = T[v, :3, :3], T[v, :3, 3]
-            P[v] = (x_cam - t) @ R  # R^T (x - t)
-            Nn[v] = np.concatenate([n2, np.zeros((num_points, 1))], -1) @ R
-            valid[v] = z > 0
-        out["points"].append(P)
-        out["normals"].append(Nn)
-        out["valid"].append(valid)
-        centers.append(c)
-        radii.append(r)
-    O = len(meshes)
-    return ContourModel(
-        directions=jnp.asarray(np.broadcast_to(dirs, (O,) + dirs.shape), jnp.float32),
-        points=jnp.asarray(np.stack(out["points"]), jnp.float32),
-        normals=jnp.asarray(np.stack(out["normals"]), jnp.float32),
-        valid=jnp.asarray(np.stack(out["valid"])),
-        center=jnp.asarray(np.stack(centers), jnp.float32),
-        radius=jnp.asarray(np.asarray(radii), jnp.float32))
+    prepared = prepare_mesh(mesh, max_faces=max_faces, texture_size=None)
+    # One face bucket for every mesh under the budget: one compiled renderer for all.
+    rm = to_raster_mesh(prepared, face_bucket=bucket_size(max(prepared.num_faces,
+                                                              max_faces or 0)))
+    c = np.asarray(prepared.center, np.float64)
+    r = float(prepared.radius)
+    dist = 10.0 * r
+    f = 0.45 * render_size * dist / r
+    K = np.array([[f, 0, (render_size - 1) / 2], [0, f, (render_size - 1) / 2], [0, 0, 1]])
+    ups = np.where(np.abs(dirs[:, 2:3]) > 0.9, [[1.0, 0, 0]], [[0, 0, 1.0]])
+    T = np.asarray(jax.vmap(look_at)(jnp.asarray(c + dist * dirs, jnp.float32),
+                                     jnp.broadcast_to(jnp.asarray(c, jnp.float32), dirs.shape),
+                                     jnp.asarray(ups, jnp.float32)), np.float64)
+    depth = []
+    for s in range(0, num_views, 128):  # bounded memory
+        depth.append(np.asarray(render(rm, T[s:s + 128].astype(np.float32), K,
+                                       (render_size, render_size), ("depth",))["depth"]))
+    depth = np.concatenate(depth)
+    P = np.zeros((num_views, num_points, 3))
+    Nn = np.zeros((num_views, num_points, 3))
+    valid = np.zeros((num_views, num_points), bool)
+    for v in range(num_views):
+        got = _sample_contours(depth[v] > 0, num_points)
+        if got is None:
+            continue
+        uv, n2 = got
+        z = depth[v][uv[:, 1].astype(int), uv[:, 0].astype(int)]
+        x_cam = np.stack([(uv[:, 0] - K[0, 2]) * z / f, (uv[:, 1] - K[1, 2]) * z / f, z], -1)
+        R, t = T[v, :3, :3], T[v, :3, 3]
+        P[v] = (x_cam - t) @ R  # R^T (x - t)
+        Nn[v] = np.concatenate([n2, np.zeros((num_points, 1))], -1) @ R
+        valid[v] = z > 0
+    return {"directions": dirs, "points": P, "normals": Nn, "valid": valid, "center": c,
+            "radius": np.float64(r)}
+
+
+def stack_contours(per_mesh: Sequence[dict[str, np.ndarray]]) -> ContourModel:
+    """One :class:`ContourModel` of the :func:`mesh_contours` of several meshes (same view
+    and point counts)."""
+    def stack(k, dtype=jnp.float32):
+        return jnp.asarray(np.stack([np.asarray(m[k]) for m in per_mesh]), dtype)
+
+    return ContourModel(directions=stack("directions"), points=stack("points"),
+                        normals=stack("normals"), valid=stack("valid", bool),
+                        center=stack("center"), radius=stack("radius"))
+
+
+def contour_model(meshes: Sequence[Mesh], **options) -> ContourModel:
+    """The :class:`ContourModel` of ``meshes`` (options of :func:`mesh_contours`)."""
+    return stack_contours([mesh_contours(m, **options) for m in meshes])
 
 
 # --------------------------------------------------------------------------- settings
