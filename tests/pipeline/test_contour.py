@@ -204,13 +204,13 @@ def test_api_refine_with_the_contour_refiner(refiner):
     models = infer.load(None, refiner="contour", cache_dir=None)
     assert isinstance(models, Models) and isinstance(models.refiner, C.ContourSettings)
     rng = np.random.default_rng(5)
-    images, Ks, T_cw, T_gt = _scene(mesh, 1, seed=2)
+    images, Ks, T_cw, T_gt = _scene(mesh, 3, seed=2)
     start = _jitter(T_gt, 8.0, 10.0, rng)
-    cam = infer.Camera(Ks[0], T_cam_world=None)
-    # One view without T_cam_world: poses are in the camera frame.
-    out = infer.refine([images[0]], [cam], [RefineObject(1, mesh, np.eye(4)[None])],
-                       [(1, T_cw[0] @ start)], models)
-    assert _err(out[0].T_world_obj, T_cw[0] @ T_gt)[0] <= _err(start, T_gt)[0] + 0.5
+    cams = [infer.Camera(Ks[v], T_cam_world=T_cw[v]) for v in range(3)]
+    out = infer.refine(list(images), cams, [RefineObject(1, mesh, np.eye(4)[None])],
+                       [(1, start)], models)
+    assert _err(out[0].T_world_obj, T_gt)[0] < 0.5 * _err(start, T_gt)[0]
+    assert set(out[0].masks) == {0, 1, 2}
     jax.clear_caches()
 
 

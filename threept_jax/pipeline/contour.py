@@ -186,9 +186,12 @@ class ContourSettings:
     slope: smoothness of the step functions, in line steps; certainty: their amplitude
       (h_f runs from 0.5 + certainty / 2 inside to 0.5 - certainty / 2 outside).
     damping: Levenberg-Marquardt damping (times the diagonal of the normal matrix).
+    max_step_deg, max_step_diameter: a trust region: one iteration turns the pose by at most
+      this many degrees and moves it by at most this share of the diameter (a step is scaled
+      down as a whole to fit).
     """
 
-    scales: tuple[float, ...] = (0.08, 0.04, 0.02, 0.01)
+    scales: tuple[float, ...] = (0.04, 0.02, 0.01, 0.005)
     iterations: int = 4
     min_step_px: float = 0.5
     samples: int = 24
@@ -199,6 +202,8 @@ class ContourSettings:
     certainty: float = 0.9
     edge_gain: float = 2.0
     damping: float = 0.1
+    max_step_deg: float = 10.0
+    max_step_diameter: float = 0.2
 
     def __post_init__(self):
         if self.evidence not in ("region", "edges", "both"):
@@ -382,16 +387,22 @@ def _evidence(model: ContourModel, images: Array, Ks: Array, T_cam_world: Array,
 
 
 def _update(poses: Array, ev: LineEvidence, center: Array, radius: Array,
-            damping: float) -> Array:
+            settings: ContourSettings) -> Array:
     """One damped Gauss-Newton step of poses [P, 4, 4] from their evidence [P, V, N]."""
     w = ev.weight
     H = jnp.einsum("pvn,pvni,pvnj->pij", w, ev.a, ev.a)
     g = jnp.einsum("pvn,pvni,pvn->pi", w, ev.a, ev.mu)
     diag = jnp.diagonal(H, axis1=-2, axis2=-1)
     floor = 1e-6 * jnp.maximum(jnp.max(diag, -1, keepdims=True), 1e-12)
-    Hd = H + jax.vmap(jnp.diag)(damping * diag + floor)
+    Hd = H + jax.vmap(jnp.diag)(settings.damping * diag + floor)
     delta = jnp.linalg.solve(Hd, g[..., None])[..., 0]  # [P, 6]
     delta = jnp.where(jnp.isfinite(delta).all(-1, keepdims=True), delta, 0.0)
+    angle = jnp.linalg.norm(delta[:, :3], axis=-1) / radius
+    shift = jnp.linalg.norm(delta[:, 3:], axis=-1) / (2.0 * radius)
+    scale = jnp.minimum(1.0, jnp.minimum(
+        np.radians(settings.max_step_deg) / jnp.maximum(angle, 1e-12),
+        settings.max_step_diameter / jnp.maximum(shift, 1e-12)))
+    delta = delta * scale[:, None]
     w_rot = delta[:, :3] / radius[:, None]
     dR = _exp_so3(w_rot)
     R, t = poses[:, :3, :3], poses[:, :3, 3]
@@ -446,7 +457,7 @@ def refine_poses(model: ContourModel, images: Array, Ks: Array, T_cam_world: Arr
 
     def body(p, frac):
         ev = evidence(p, frac)
-        return _update(p, ev, center, radius, settings.damping), None
+        return _update(p, ev, center, radius, settings), None
 
     refined, _ = jax.lax.scan(body, poses, fracs)
     finest = min(settings.scales)
