@@ -106,10 +106,9 @@ class ContourRefiner:
             scores = res.scores.reshape(N, K)
             best = jnp.argmax(scores, -1)
             poses = res.poses.reshape(N, K, 4, 4)[jnp.arange(N), best]
-            refined_raw = res.refined_scores.reshape(N, K)[jnp.arange(N), best]
             ids, _ = occluder_maps(meshes, mesh_index, poses, Ks, T_cw, images.shape[1:3],
                                    inst_mask)
-            return poses, scores[jnp.arange(N), best], refined_raw, ids
+            return poses, scores[jnp.arange(N), best], ids
 
         self._run = jax.jit(run, static_argnames=("hw_occ",))
 
@@ -131,7 +130,7 @@ class ContourRefiner:
         hw_occ = (max(int(round(H * s)), 1), max(int(round(W * s)), 1))
         Ks = np.asarray(Ks, np.float64)
         Ks_occ = np.stack([scale_intrinsics(K, (H, W), hw_occ) for K in Ks]).astype(np.float32)
-        poses, scores, _, masks_id = jax.device_get(self._run(
+        poses, scores, masks_id = jax.device_get(self._run(
             self.model, self.meshes.stacked, jnp.asarray(np.stack(images)),
             Ks.astype(np.float32), Ks_occ, T_cw, hyps, mesh_index, inst_mask, hw_occ=hw_occ))
         out = []

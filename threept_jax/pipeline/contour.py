@@ -47,6 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from threept_jax.geometry.camera import look_at
+from threept_jax.geometry.rotations import axis_angle_to_matrix, skew
 from threept_jax.render.mesh import Mesh, bucket_size, prepare_mesh, to_raster_mesh
 from threept_jax.render.raster import render
 
@@ -220,7 +221,7 @@ class ContourSettings:
 
 class LineEvidence(NamedTuple):
     """Per (pose, view, line): mu, var [P, V, N] (px, along the outward normal), weight
-    [P, V, N] (0 for invalid lines), a [P, V, N, 6] d(offset)/d(pose parameters), score_mass
+    [P, V, N] (0 for invalid lines), a [P, V, N, 6] d(offset)/d(pose parameters), near_mass
     [P, V, N] the posterior mass within one step of the projected contour."""
 
     mu: Array
@@ -332,28 +333,12 @@ def line_evidence(image: Array, K: Array, T_cam_obj: Array, points: Array, norma
     # d(offset along n2)/d(pose): rotation w (scaled by the radius) about the centre, then
     # translation v, both in the object frame: dX = (w x (X - c)) / r + v.
     Xo = points - center
-    dX_dw = -jnp.einsum("ij,njk->nik", R, _skew(Xo)) / radius  # [N, 3, 3] camera frame
+    dX_dw = -jnp.einsum("ij,njk->nik", R, skew(Xo)) / radius  # [N, 3, 3] camera frame
     dX_dv = jnp.broadcast_to(R, (points.shape[0], 3, 3))
     dX = jnp.concatenate([dX_dw, dX_dv], -1)  # [N, 3, 6]
     a = jnp.einsum("ni,nij,njk->nk", n2, Ju, dX)
     return LineEvidence(mu=mu, var=var, weight=weight, a=a,
                         near_mass=jnp.where(centre_ok, near_mass, 0.0))
-
-
-def _skew(v: Array) -> Array:
-    """[..., 3] -> [..., 3, 3] cross-product matrices."""
-    z = jnp.zeros_like(v[..., 0])
-    return jnp.stack([jnp.stack([z, -v[..., 2], v[..., 1]], -1),
-                      jnp.stack([v[..., 2], z, -v[..., 0]], -1),
-                      jnp.stack([-v[..., 1], v[..., 0], z], -1)], -2)
-
-
-def _exp_so3(w: Array) -> Array:
-    """Rodrigues: [..., 3] rotation vector -> [..., 3, 3]."""
-    theta = jnp.linalg.norm(w, axis=-1)[..., None, None]
-    K = _skew(w / jnp.maximum(theta[..., 0], 1e-12))
-    eye = jnp.eye(3, dtype=w.dtype)
-    return eye + jnp.sin(theta) * K + (1 - jnp.cos(theta)) * (K @ K)
 
 
 # --------------------------------------------------------------------------- refinement
@@ -404,7 +389,7 @@ def _update(poses: Array, ev: LineEvidence, center: Array, radius: Array,
         settings.max_step_diameter / jnp.maximum(shift, 1e-12)))
     delta = delta * scale[:, None]
     w_rot = delta[:, :3] / radius[:, None]
-    dR = _exp_so3(w_rot)
+    dR = axis_angle_to_matrix(w_rot)
     R, t = poses[:, :3, :3], poses[:, :3, 3]
     # X' = c + dR (X - c) + v in the object frame, then the old pose.
     t_obj = center - jnp.einsum("pij,pj->pi", dR, center) + delta[:, 3:]
