@@ -21,7 +21,7 @@ lowest MSSD (chance 20 %)? Times: the first call (compilation) apart from the wa
 warm milliseconds per object per view per Gauss-Newton iteration.
 
     python bench/contour_refine.py [--data runs/contour] [--rungs 5:10 10:30 20:60]
-        [--evidence region edges both] [--out contour.json]
+        [--evidence region edges both] [--prior 0 0.1] [--out contour.json]
 """
 
 from __future__ import annotations
@@ -29,7 +29,9 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import shutil
 import sys
+import tempfile
 import time
 import warnings
 
@@ -117,12 +119,14 @@ def recall(e_mssd, diam):
                           for t in MSSD_THRESHOLDS]))
 
 
-def build(ds, settings):
-    """(the dataset's objects, their ContourRefiner, seconds per object to build it)."""
+def build(ds, settings, cache):
+    """(the dataset's objects, their ContourRefiner, seconds per object to build it). The
+    contour models are kept in ``cache`` (a fresh directory per run): the first settings
+    build them, the others read them back."""
     objects = refine_objects({k: m.path for k, m in ds.models().items()})
     t = time.perf_counter()
     print(f"contour models of {len(objects)} objects ...", flush=True)
-    refiner = ContourRefiner(objects, settings)
+    refiner = ContourRefiner(objects, settings, cache_dir=cache)
     return objects, refiner, (time.perf_counter() - t) / len(objects)
 
 
@@ -270,6 +274,8 @@ def main(argv=None):
     p.add_argument("--data", type=pathlib.Path, default=ROOT / "runs" / "contour")
     p.add_argument("--rungs", nargs="+", default=["5:10", "10:30", "20:60"])
     p.add_argument("--evidence", nargs="+", default=["both"], choices=["region", "edges", "both"])
+    p.add_argument("--prior", nargs="+", type=float, default=[ContourSettings().prior],
+                   help="ContourSettings.prior values to compare (the pull back to the start)")
     p.add_argument("--min-visib", type=float, default=0.5)
     p.add_argument("--no-score-test", action="store_true")
     p.add_argument("--opencv", action="store_true",
@@ -282,11 +288,18 @@ def main(argv=None):
         generate(args.data)
     rungs = [tuple(float(x) for x in r.split(":")) for r in args.rungs]
     table, times, scores = [], [], []
-    for evidence in args.evidence:
-        settings = ContourSettings(evidence=evidence)
+    combos = [(e, q) for e in args.evidence for q in args.prior]
+    cache = pathlib.Path(tempfile.mkdtemp(prefix="contour-bench-"))
+    onboard = {}
+    for evidence, prior in combos:
+        first = (evidence, prior) == combos[0]
+        settings = ContourSettings(evidence=evidence, prior=prior)
+        if len(args.prior) > 1:
+            evidence = f"{evidence}, prior {prior:g}"
         for name, views_list in (("cell", (1,)), ("rig", (1, 3))):
             ds, groups = load_groups(args.data / name, args.min_visib)
-            built = build(ds, settings)
+            built = build(ds, settings, cache / name)
+            built = (*built[:2], onboard.setdefault(name, built[2]))  # the cold build's time
             for views in views_list:
                 rows, t = run(name, groups, views, rungs, settings, built)
                 for r in rows:
@@ -294,7 +307,7 @@ def main(argv=None):
                 t["evidence"] = evidence
                 table += rows
                 times.append(t)
-                if args.opencv and views == 1 and evidence == args.evidence[0]:
+                if args.opencv and views == 1 and first:
                     table += run_opencv(name, ds, groups, rungs)
                 if not args.no_score_test and views == views_list[-1]:
                     acc, n = score_test(groups, views, built)
@@ -319,6 +332,7 @@ def main(argv=None):
         print(f"score test {s['evidence']} {s['data']} {s['views']} view(s): the top score "
               f"picks the best of 5 refined poses {100 * s['best_of_5_picked']:.0f} % of "
               f"{s['instances']} instances (chance 20 %)")
+    shutil.rmtree(cache, ignore_errors=True)
     if args.out:
         args.out.write_text(json.dumps({"table": table, "times": times, "scores": scores},
                                        indent=1))

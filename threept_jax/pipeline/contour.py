@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from threept_jax.geometry.camera import look_at
-from threept_jax.geometry.rotations import axis_angle_to_matrix, skew
+from threept_jax.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle, skew
 from threept_jax.render.mesh import Mesh, bucket_size, prepare_mesh, to_raster_mesh
 from threept_jax.render.raster import render
 
@@ -187,6 +187,11 @@ class ContourSettings:
     slope: smoothness of the step functions, in line steps; certainty: their amplitude
       (h_f runs from 0.5 + certainty / 2 inside to 0.5 - certainty / 2 outside).
     damping: Levenberg-Marquardt damping (times the diagonal of the normal matrix).
+    prior: weight of a pull back to the start pose, times the mean of the normal matrix's
+      diagonal: directions the contour constrains well (the image plane) follow the evidence,
+      those it barely sees (depth and out-of-plane turns in one view) stay near the start
+      instead of drifting over the iterations (the damping alone anchors each step at the
+      pose it starts from, not at the start). 0 turns it off.
     max_step_deg, max_step_diameter: a trust region: one iteration turns the pose by at most
       this many degrees and moves it by at most this share of the diameter (a step is scaled
       down as a whole to fit).
@@ -203,6 +208,7 @@ class ContourSettings:
     certainty: float = 0.9
     edge_gain: float = 2.0
     damping: float = 0.1
+    prior: float = 0.05
     max_step_deg: float = 10.0
     max_step_diameter: float = 0.2
 
@@ -371,15 +377,28 @@ def _evidence(model: ContourModel, images: Array, Ks: Array, T_cam_world: Array,
     return jax.vmap(one)(poses, obj, instance, view_mask)
 
 
-def _update(poses: Array, ev: LineEvidence, center: Array, radius: Array,
+def _offset(poses: Array, starts: Array, center: Array, radius: Array) -> Array:
+    """[P, 6] where poses are from their starts, in the step's coordinates (rotation about the
+    object's centre times the radius, then the centre's shift, both in the pose's object
+    frame): to first order a step delta moves the offset to offset + delta."""
+    R, R0 = poses[:, :3, :3], starts[:, :3, :3]
+    turn = matrix_to_axis_angle(jnp.einsum("pji,pjk->pik", R0, R)) * radius[:, None]
+    world = (jnp.einsum("pij,pj->pi", R - R0, center) + poses[:, :3, 3] - starts[:, :3, 3])
+    return jnp.concatenate([turn, jnp.einsum("pji,pj->pi", R, world)], -1)
+
+
+def _update(poses: Array, starts: Array, ev: LineEvidence, center: Array, radius: Array,
             settings: ContourSettings) -> Array:
-    """One damped Gauss-Newton step of poses [P, 4, 4] from their evidence [P, V, N]."""
+    """One damped Gauss-Newton step of poses [P, 4, 4] from their evidence [P, V, N], pulled
+    towards ``starts`` [P, 4, 4] by ``settings.prior``."""
     w = ev.weight
     H = jnp.einsum("pvn,pvni,pvnj->pij", w, ev.a, ev.a)
     g = jnp.einsum("pvn,pvni,pvn->pi", w, ev.a, ev.mu)
     diag = jnp.diagonal(H, axis1=-2, axis2=-1)
     floor = 1e-6 * jnp.maximum(jnp.max(diag, -1, keepdims=True), 1e-12)
-    Hd = H + jax.vmap(jnp.diag)(settings.damping * diag + floor)
+    pull = settings.prior * jnp.mean(diag, -1, keepdims=True)  # [P, 1]
+    g = g - pull * _offset(poses, starts, center, radius)
+    Hd = H + jax.vmap(jnp.diag)(settings.damping * diag + pull + floor)
     delta = jnp.linalg.solve(Hd, g[..., None])[..., 0]  # [P, 6]
     delta = jnp.where(jnp.isfinite(delta).all(-1, keepdims=True), delta, 0.0)
     angle = jnp.linalg.norm(delta[:, :3], axis=-1) / radius
@@ -442,7 +461,7 @@ def refine_poses(model: ContourModel, images: Array, Ks: Array, T_cam_world: Arr
 
     def body(p, frac):
         ev = evidence(p, frac)
-        return _update(p, ev, center, radius, settings), None
+        return _update(p, poses, ev, center, radius, settings), None
 
     refined, _ = jax.lax.scan(body, poses, fracs)
     finest = min(settings.scales)
