@@ -105,37 +105,35 @@ def test_offset_jacobian_matches_central_differences():
 
 
 def test_offset_from_the_start_follows_the_step_parametrisation():
-    """The prior's offset of a pose from its start: zero at the start; after steps delta made
-    as the update makes them (turn about the centre by delta[:3] / radius, then shift the centre
-    by delta[3:], in the object frame; float64 SciPy), the offset is delta to first order."""
+    """The prior's offset of a pose from its start: zero at the start; after one step delta
+    made as the update makes it (turn about the centre by delta[:3] / radius, then shift the
+    centre by delta[3:], in the object frame; float64 SciPy), exactly delta's turn and the
+    shift seen from the moved pose's frame (dR^T delta[3:])."""
     center, radius = np.array([4.0, -3.0, 10.0]), 50.0
     start = np.eye(4)
     start[:3, :3] = Rotation.from_rotvec([0.4, 0.1, -0.7]).as_matrix()
     start[:3, 3] = [20.0, -10.0, 600.0]
 
-    def step(T, delta):
-        dR = Rotation.from_rotvec(delta[:3] / radius).as_matrix()
-        out = T.copy()
-        out[:3, :3] = T[:3, :3] @ dR
-        out[:3, 3] = T[:3, 3] + T[:3, :3] @ (center - dR @ center + delta[3:])
-        return out
+    def offset(T):
+        return np.asarray(C._offset(jnp.asarray(T[None], jnp.float32),
+                                    jnp.asarray(start[None], jnp.float32),
+                                    jnp.asarray(center[None], jnp.float32),
+                                    jnp.asarray([radius], jnp.float32)))[0]
 
     rng = np.random.default_rng(3)
     for scale in (1e-2, 1.0):
         delta = rng.normal(0, scale, 6)
-        moved = step(start, delta)
-        got = np.asarray(C._offset(jnp.asarray(moved[None], jnp.float32),
-                                   jnp.asarray(start[None], jnp.float32),
-                                   jnp.asarray(center[None], jnp.float32),
-                                   jnp.asarray([radius], jnp.float32)))[0]
-        # Exact for a pure step from the start: the turn is delta's and the centre moved by
-        # start's R delta[3:], which is the moved pose's R dR^T delta[3:] in its own frame.
         dR = Rotation.from_rotvec(delta[:3] / radius).as_matrix()
+        moved = start.copy()
+        moved[:3, :3] = start[:3, :3] @ dR
+        moved[:3, 3] = start[:3, 3] + start[:3, :3] @ (center - dR @ center + delta[3:])
+        got = offset(moved)
         np.testing.assert_allclose(got[:3], delta[:3], atol=1e-3)
         np.testing.assert_allclose(got[3:], dR.T @ delta[3:], atol=2e-3)
-    zero = C._offset(jnp.asarray(start[None], jnp.float32), jnp.asarray(start[None], jnp.float32),
-                     jnp.asarray(center[None], jnp.float32), jnp.asarray([radius], jnp.float32))
-    np.testing.assert_allclose(np.asarray(zero), 0.0, atol=1e-4)
+    np.testing.assert_allclose(offset(start), 0.0, atol=1e-4)
+    with pytest.raises(ValueError, match="must be >= 0"):
+        C.ContourSettings(prior=-0.1)
+
 
 def _scene(mesh, views, seed=0):
     """``mesh`` on a noisy grey background seen by ``views`` cameras 400 mm away."""

@@ -220,6 +220,9 @@ class ContourSettings:
                              f"{self.samples} and {self.offsets}")
         if not self.scales or min(self.scales) <= 0 or self.iterations < 1:
             raise ValueError("scales must be positive fractions and iterations >= 1")
+        if not (self.damping >= 0 and self.prior >= 0):
+            raise ValueError(f"damping and prior are weights and must be >= 0 (0 turns one "
+                             f"off), got {self.damping} and {self.prior}")
 
 
 # --------------------------------------------------------------------------- evidence
