@@ -12,22 +12,25 @@ downloaded and nothing from outside the repository:
    then a refiner (3PT-R, ``train/configs/refiner.py:tiny``) for ``--refiner-minutes`` on the
    same records. The best detector checkpoint (full-image AP50 on val scenes) detects every
    part in new test scenes, object generation gives each detection a pose and the refiner
-   refines it: box AP50, and BOP 6D AP, AP-mm and segmentation AP before refinement (object
+   refines it (the trained 3PT-R when its held-out check passes, else the training-free contour
+   refiner): box AP50, and BOP 6D AP, AP-mm and segmentation AP before refinement (object
    generation alone) and after it.
 2. **Zero-shot**: five other procedural parts, never seen in training, are onboarded from
    their meshes alone and detected by the shipped models, as a user who installs threept_jax
    gets them, in a cell of their own (val scenes choose the overlay threshold, test scenes give
-   the figures), and refined by the shipped refiner when one ships.
+   the figures), and refined by the shipped refiner when one ships, else by the contour
+   refiner.
 
 A refiner trained for a few CPU minutes may not improve the poses yet: its held-out figures
 (rotation error and MSSD recall before and after its steps) are printed, and a refiner that
-makes held-out poses worse is not used for either setting (``train.adapt.refiner_helps``;
-``--refiner-minutes 0`` skips the refiner). With a refiner the "before" and "after" figures say
-which way it went. Every stage resumes: run the same command again and finished stages are
+makes held-out poses worse is not used (``train.adapt.refiner_helps``; ``--refiner-minutes 0``
+trains none): the contour refiner refines instead. The "before" and "after" figures say which
+way refinement went. Every stage resumes: run the same command again and finished stages are
 skipped (a killed data generation redoes only its unfinished scene, a killed training restarts
 from its last checkpoint). Outputs go to ``--out`` (default ``runs/demo``): ``report.json``,
-the two settings' overlays (``adapted/test/overlays``, ``zero_shot/test/overlays``: boxes and
-the contours of the refined poses, at least 640 px wide, only detections above the best-F1
+the two settings' overlays (``adapted/test/overlays``, ``zero_shot/test/overlays``: boxes, the
+contours of the refined poses in colour and of the poses before refinement in white, at least
+640 px wide, only detections above the best-F1
 threshold of the val scenes). What 2 cores reach in these minutes, and the curve of AP against
 training time, are in docs/limits.md and docs/benchmarks.md.
 """
@@ -45,16 +48,17 @@ ADAPTED_SEED, ZERO_SHOT_SEED = 7, 8
 
 
 def zero_shot(out: pathlib.Path, test_scenes: int, seed: int) -> dict:
-    """Scenes of parts the shipped models never saw (val and test shards), detected (and
-    refined, when a refiner ships) by them."""
-    from infer.shipped import shipped
+    """Scenes of parts the shipped models never saw (val and test shards), detected by them
+    and refined by the default refiner (the shipped 3PT-R when one ships, else the contour
+    refiner)."""
+    from infer.shipped import default_refiner, shipped
     from train import adapt
 
     args = adapt.parse_args(["--meshes", "procedural:5", "--seed", str(seed), "--workdir",
                              str(out), "--test-scenes", str(test_scenes), "--from", "scratch"])
     adapt.generate(args, out / "data", sets=("val", "test"))
     return adapt.test(shipped("detector"), out / "data", out, out / "cache", overlays=6,
-                      instances=args.instances, refiner=shipped("refiner"))
+                      instances=args.instances, refiner=default_refiner())
 
 
 def summary(name: str, figs: dict) -> list[str]:
@@ -110,8 +114,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     lines = [*summary("adapted (trained on these 5 parts)", adapted["test"]),
              *(f"    {line}" for line in refiner_lines(adapted.get("refiner_heldout") or {})),
-             *(["    the refiner is not used: it makes held-out poses worse"]
-               if adapted.get("refiner_trained") and adapted["refiner"] is None else []),
+             *(["    the trained refiner is not used (it makes held-out poses worse): the "
+                "contour refiner refines instead"]
+               if adapted.get("refiner_trained") not in (None, adapted["refiner"]) else []),
              *summary("zero-shot (the shipped models, 5 parts never seen)", unseen["test"])]
     print(f"\ndone in {report['minutes']:.1f} min. Full images, all parts queried, new scenes:\n"
           + "\n".join(f"  {line}" for line in lines)

@@ -36,7 +36,7 @@ from infer.masks import PoseRenderer
 from infer.onboarding import ONBOARD_TEMPLATES, OnboardedObject, Onboarder
 from infer.refine import RefinedPose, SceneRefiner, refine_objects
 from infer.scene import Instances, assign_pixels, find_instances
-from infer.shipped import shipped
+from infer.shipped import CONTOUR, default_refiner, shipped
 from threept_jax.data.bop import Camera
 from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.models.configs import DetectorConfig, RefinerConfig
@@ -46,8 +46,6 @@ from threept_jax.pipeline.contour import ContourSettings
 from threept_jax.pipeline.refinement import RefineSettings
 from threept_jax.render import Mesh
 
-#: The ``refiner`` argument of :func:`load` (and ``--refiner``) that picks the contour refiner.
-CONTOUR = "contour"
 DEFAULT_CACHE = pathlib.Path(os.environ.get("THREEPT_CACHE", "~/.cache/threept_jax")).expanduser()
 
 __all__ = ["Camera", "Models", "TrackedFrame", "load", "run_scene", "refine", "track",
@@ -134,11 +132,12 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
     cache), and/or a refiner run (``refiner``, ``refiner_step``; ``"contour"``: the
     training-free contour refiner, :mod:`infer.contour_refine`, its contours cached under
     ``cache_dir/contours``). With neither, the models
-    that ship in ``models/`` (:mod:`infer.shipped`): the detector and, when one ships, the
-    refiner; a missing or damaged file of theirs raises an error naming it and how to restore
+    that ship in ``models/`` (:mod:`infer.shipped`): the detector and the default refiner
+    (:func:`infer.shipped.default_refiner`: the shipped 3PT-R when one ships, else the contour
+    refiner); a missing or damaged file of theirs raises an error naming it and how to restore
     it."""
     if workdir is None and refiner is None:
-        workdir, refiner = shipped("detector"), shipped("refiner")
+        workdir, refiner = shipped("detector"), default_refiner()
     models = Models(None, None, None, None)
     if workdir is not None:
         model, cfg, step = load_detector(workdir, step)

@@ -252,7 +252,11 @@ def silhouettes(instances, poses, images, Ks, T_cam_world, renderer) -> list[dic
     return out
 
 
-def _draw(path: pathlib.Path, image, rows, instances, threshold: float, caption) -> None:
+def _draw(path: pathlib.Path, image, rows, instances, threshold: float, caption,
+          rows_before=()) -> None:
+    """One overlay: the rows above ``threshold`` (boxes, labels, contours of the written poses)
+    and, when refining, the contours of the same instances before refinement
+    (``rows_before``, white)."""
     from infer.detect import Detection
     from infer.visualize import draw_detections, empty_caption
 
@@ -261,7 +265,12 @@ def _draw(path: pathlib.Path, image, rows, instances, threshold: float, caption)
         caption = empty_caption(threshold, max(instances[r[0]].score for r in rows))
     dets = [Detection(instances[i].obj_id, box, instances[i].score, T[None], np.ones(1),
                       np.zeros(0)) for i, T, box, _ in shown]
-    canvas = draw_detections(image, dets, [m for *_, m in shown], caption=caption)
+    kept = {r[0] for r in shown}
+    before = [m for i, *_, m in rows_before if i in kept]
+    if before and caption is None:
+        caption = "white: contours before refinement; colour: after"
+    canvas = draw_detections(image, dets, [m for *_, m in shown], caption=caption,
+                             before_masks=before)
     path.parent.mkdir(exist_ok=True)
     cv2.imwrite(str(path), cv2.cvtColor(canvas, cv2.COLOR_RGB2BGR))
 
@@ -310,12 +319,13 @@ def run_bop(args) -> dict:
         drawn = add_group_rows(final, group, images, Ks, T_cw, instances,
                                [x.T_world_obj for x in instances],
                                [x.masks for x in instances], elapsed, by_id, refined=refining)
+        drawn_before = [[] for _ in group]
         if refining:  # outside the timed part: the before-refinement files
             before = [x.T_world_obj_initial for x in instances]
-            add_group_rows(initial, group, images, Ks, T_cw, instances, before,
-                           silhouettes(instances, before, images, Ks, T_cw,
-                                       nets.pose_renderer(objects)),
-                           elapsed, by_id, refined=False)
+            drawn_before = add_group_rows(
+                initial, group, images, Ks, T_cw, instances, before,
+                silhouettes(instances, before, images, Ks, T_cw, nets.pose_renderer(objects)),
+                elapsed, by_id, refined=False)
         caption = None
         if not instances:
             caption = empty_caption_of(instances, args.score_threshold, multiview)
@@ -323,12 +333,12 @@ def run_bop(args) -> dict:
             if len(empty) <= MAX_EMPTY_LINES:
                 names = ", ".join(str(v.im_id) for v in group)
                 tqdm.write(f"scene {group[0].scene_id} image{'s' * multiview} {names}: {caption}")
-        for view, image, rows in zip(group, images, drawn):
+        for view, image, rows, rows_before in zip(group, images, drawn, drawn_before):
             if shown >= args.overlays:
                 break
             shown += 1
             _draw(args.out / "overlays" / f"{view.scene_id:06d}_{view.im_id:06d}.png", image,
-                  rows, instances, overlay_threshold, caption)
+                  rows, instances, overlay_threshold, caption, rows_before)
 
     stem = f"{args.method}_{ds.name}-{args.split}"
     csv_path, json_path = final.write(args.out, stem)

@@ -32,7 +32,6 @@ from infer.options import (
     read_rgb,
     refiner_options,
 )
-from infer.shipped import SHIPPED
 from infer.track_cli import add_track_parser
 from threept_jax.geometry.diameter import MeshUnitsError
 
@@ -133,9 +132,9 @@ def main(argv: Sequence[str] | None = None):
         parser.error(f"argument --depth-range: ZMIN must be <= ZMAX, got {args.depth_range[0]:g} "
                      f"{args.depth_range[1]:g}")
     if args.command == "bop":
-        if args.refine_only is not None and args.refiner is None and not SHIPPED["refiner"]:
-            parser.error("--refine-only needs --refiner contour (no training) or --refiner RUN "
-                         "(a 3PT-R run; none ships yet)")
+        if args.refine_only is not None and str(args.refiner) == "none":
+            parser.error("--refine-only refines with a refiner: drop --refiner none (the "
+                         "default refiner) or pass --refiner contour|RUN")
         if args.refine_only is not None and args.workdir is not None:
             parser.error("--refine-only refines another method's results without the detector: "
                          "drop --workdir")

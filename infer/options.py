@@ -19,7 +19,7 @@ import numpy as np
 
 from infer.api import DEFAULT_CACHE, Camera, load
 from infer.onboarding import ONBOARD_TEMPLATES
-from infer.shipped import describe, shipped
+from infer.shipped import default_refiner, describe, shipped
 from threept_jax.geometry.validate import validate_intrinsics, validate_rigid
 
 
@@ -132,7 +132,8 @@ def camera_options(p: argparse.ArgumentParser, per: str) -> None:
 def load_models(args, detector: bool = True):
     """The command's models (``infer.load``), with the onboarding and compilation caches: the
     detector of ``--workdir`` (when ``detector``; default the shipped one) and, when the command
-    has the option, the refiner of ``--refiner`` (default the shipped one, when one ships)."""
+    has the option, the refiner of ``--refiner`` (default :func:`infer.shipped.default_refiner`:
+    the shipped 3PT-R when one ships, else the contour refiner; ``none``: no refiner)."""
     import jax
 
     jax.config.update("jax_compilation_cache_dir", str(args.cache_dir / "jax"))
@@ -140,10 +141,10 @@ def load_models(args, detector: bool = True):
     workdir = (args.workdir or shipped("detector")) if detector else None
     refiner = None
     if hasattr(args, "refiner") and str(args.refiner) != "none":
-        refiner = args.refiner or shipped("refiner")
+        refiner = args.refiner or default_refiner()
     if workdir is None and refiner is None:
-        raise ValueError("no model to load: pass --refiner contour (no training) or --refiner "
-                         "RUN (no 3PT-R ships yet)")
+        raise ValueError("no model to load: --refiner none leaves this command nothing to run; "
+                         "drop it (the default refiner) or pass --refiner contour|RUN")
     return load(workdir, args.step, refiner=refiner,
                 refiner_step=getattr(args, "refiner_step", "best"), cache_dir=args.cache_dir,
                 num_templates=args.num_templates)

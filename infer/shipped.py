@@ -18,6 +18,9 @@ from threept_jax.data.run_dir import MODEL_FILES, RunDir
 MODELS_DIR = pathlib.Path(__file__).resolve().parent.parent / "models"
 #: The shipped model of each kind, a folder of :data:`MODELS_DIR`; None: none ships yet.
 SHIPPED: dict[str, str | None] = {"detector": "detector-cpu", "refiner": None}
+#: The ``refiner`` argument of ``infer.load`` (and ``--refiner``) that picks the training-free
+#: contour refiner (:mod:`infer.contour_refine`).
+CONTOUR = "contour"
 
 
 def restore_hint(path: pathlib.Path) -> str:
@@ -46,9 +49,17 @@ def shipped(kind: str) -> pathlib.Path | None:
     return path
 
 
+def default_refiner() -> pathlib.Path | str:
+    """The refiner used when none is named: the shipped 3PT-R (a refiner ships only when its
+    held-out check passes: it makes held-out poses better), else the training-free contour
+    refiner (:data:`CONTOUR`), which needs nothing but the meshes."""
+    return shipped("refiner") or CONTOUR
+
+
 def describe(kind: str) -> str:
     """One line on the shipped ``kind`` model, for help texts."""
     name = SHIPPED.get(kind)
     if name is None:
-        return f"no {kind} ships yet"
+        return ("the contour refiner (no 3PT-R ships yet)" if kind == "refiner"
+                else f"no {kind} ships yet")
     return f"the shipped {kind}, models/{name} ({MODEL_FILES[kind][0]}, MODEL_CARD.md)"

@@ -47,7 +47,6 @@ from infer.options import (
     read_rgb,
     refiner_options,
 )
-from infer.shipped import SHIPPED
 from threept_jax.geometry.validate import validate_rigid
 
 #: Image files ``--frames`` reads (by suffix, case-insensitive).
@@ -241,9 +240,9 @@ def run_track(args) -> dict:
         raise ValueError(f"--video {args.video}: no frame could be read")
     Ks, _ = prepare_views(first, cameras)  # K against the frame size, before the slow work
     init = None if args.init is None else read_init(args.init, set(meshes))
-    if args.refiner is None and not SHIPPED["refiner"]:
-        raise ValueError("track refines every frame: pass --refiner contour (no training) or "
-                         "--refiner RUN (a 3PT-R run; none ships yet)")
+    if str(args.refiner) == "none":
+        raise ValueError("track refines every frame: drop --refiner none (the default refiner) "
+                         "or pass --refiner contour|RUN")
     # The detector finds the first frame's objects (no --init) and re-detects (--min-score).
     detecting = init is None or args.min_score is not None or args.workdir is not None
     models = load_models(args, detector=detecting)

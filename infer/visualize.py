@@ -37,9 +37,12 @@ MIN_OVERLAY_WIDTH = 640
 def draw_detections(image: np.ndarray, detections: Sequence[Detection],
                     masks: Sequence[np.ndarray] | None = None,
                     names: Mapping[int, str] | None = None, max_draw: int = 50,
-                    caption: str | None = None) -> np.ndarray:
+                    caption: str | None = None,
+                    before_masks: Sequence[np.ndarray] = ()) -> np.ndarray:
     """uint8 RGB copy of ``image`` with boxes, ``name score`` labels and mask contours, and
     ``caption`` (if given) in white on a black band at the top (:func:`caption_band_height`).
+    ``before_masks`` (e.g. the silhouettes before refinement) are outlined in white under the
+    detections' coloured contours.
 
     An image narrower than :data:`MIN_OVERLAY_WIDTH` is enlarged by the smallest whole factor
     that reaches it (bilinear; masks nearest, boxes scaled), so that labels stay legible."""
@@ -47,11 +50,18 @@ def draw_detections(image: np.ndarray, detections: Sequence[Detection],
     up = max(1, -(-MIN_OVERLAY_WIDTH // image.shape[1]))
     if up > 1:
         image = cv2.resize(image, None, fx=up, fy=up, interpolation=cv2.INTER_LINEAR)
-        if masks is not None:
-            masks = [cv2.resize(m.astype(np.uint8), None, fx=up, fy=up,
-                                interpolation=cv2.INTER_NEAREST) for m in masks]
+        def grow(m):
+            return cv2.resize(m.astype(np.uint8), None, fx=up, fy=up,
+                              interpolation=cv2.INTER_NEAREST)
+
+        masks = None if masks is None else [grow(m) for m in masks]
+        before_masks = [grow(m) for m in before_masks]
     canvas = np.ascontiguousarray(image.copy())
     scale = max(1, round(max(canvas.shape[:2]) / 640))
+    for m in before_masks[:max_draw]:
+        contours, _ = cv2.findContours(m.astype(np.uint8), cv2.RETR_EXTERNAL,
+                                       cv2.CHAIN_APPROX_NONE)
+        cv2.drawContours(canvas, contours, -1, (255, 255, 255), scale, cv2.LINE_AA)
     if caption:
         band = caption_band_height(canvas.shape[:2])
         canvas[:band] = 0

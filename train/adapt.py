@@ -23,21 +23,23 @@ that with our own data engine, in stages that each resume when the command is ru
    directory (``config.json``, ``checkpoints/``, ``tb/``): ``python -m infer images --workdir
    W`` loads it, and a killed run resumes from its last checkpoint.
 5. **Refiner training** (``train.trainer_refiner``, only with ``--refiner-minutes`` > 0; the
-   default 0 trains no refiner and tests object generation alone): a 3PT-R run of
+   default 0 trains none and the contour refiner refines the test): a 3PT-R run of
    ``--refiner-config`` (``train/configs/refiner.py``) from scratch on the same records ->
    ``W/refiner``, an ordinary refiner run (``python -m infer bop --refiner W/refiner``); its
    best checkpoint by the held-out MSSD recall after refinement on the val records. Its
    held-out figures (:func:`refiner_heldout`: rotation error and MSSD recall before and after
    its steps, score accuracy) are printed and reported; a refiner whose steps lower the
-   held-out recall is not used for the test (:func:`refiner_helps`).
+   held-out recall is not used for the test (:func:`refiner_helps`): the training-free contour
+   refiner (``--refiner contour``) refines instead, as it does without ``--refiner-minutes``.
 6. **Test**: the best detector checkpoint (by full-image AP50 on the val scenes) runs ``python
    -m infer bop`` on the val scenes, whose best-F1 score becomes the overlay threshold, then on
    the test scenes: full images, every part queried, the best detections of an image whatever
    their score (as many as a scene holds instances at most, :func:`max_detections`), refined
-   by ``W/refiner`` when one was trained and helps. Box AP / AP50 (COCO, BOP ignore rule), segmentation
-   AP and BOP 6D AP and AP-mm -> ``W/report.json`` (:func:`figures`: with a refiner, before
-   and after refinement); overlays (boxes and pose contours, refined when refining, at least
-   640 px wide) under ``W/test/overlays``.
+   by ``W/refiner`` when one was trained and helps, else by the contour refiner. Box AP / AP50
+   (COCO, BOP ignore rule), segmentation AP and BOP 6D AP and AP-mm -> ``W/report.json``
+   (:func:`figures`: before and after refinement); overlays (boxes, pose contours after
+   refinement in colour and before it in white, at least 640 px wide) under
+   ``W/test/overlays``.
 
 ``--meshes`` takes what ``datagen.generate`` takes: BOP models folders, trees of mesh files
 (``--mesh-units`` when not mm), or ``procedural:N`` (N parts of ``--seed``; the demo's parts).
@@ -279,10 +281,10 @@ def max_detections(instances: int) -> int:
 
 def infer_bop(workdir: pathlib.Path, dataset: pathlib.Path, out: pathlib.Path, cache: pathlib.Path,
               max_detections: int, overlays: int = 0, overlay_threshold: float | None = None,
-              refiner: pathlib.Path | None = None, obj_ids: Sequence[int] = (),
+              refiner: pathlib.Path | str | None = None, obj_ids: Sequence[int] = (),
               targets: str = "all") -> dict:
     """``python -m infer bop --evaluate`` of the best detector checkpoint of ``workdir`` (and
-    of ``refiner``'s best checkpoint when given) on ``dataset``'s ``val_pbr`` images, the
+    of ``refiner`` when given: a run's best checkpoint or ``"contour"``) on ``dataset``'s ``val_pbr`` images, the
     ``max_detections`` best detections of an image whatever their score; every object of the
     dataset queried, or ``obj_ids``; ``targets="bop19"``: each image queried with the objects
     of its BOP19 targets."""
@@ -384,7 +386,7 @@ def refiner_lines(h: dict) -> list[str]:
 
 
 def test(workdir: pathlib.Path, data: pathlib.Path, out: pathlib.Path, cache: pathlib.Path,
-         overlays: int, instances: int, refiner: pathlib.Path | None = None) -> dict:
+         overlays: int, instances: int, refiner: pathlib.Path | str | None = None) -> dict:
     """The best checkpoint of ``workdir`` on ``data/val`` (whose best-F1 score becomes the
     overlay threshold; detection alone, no refinement) and on ``data/test``, refined by
     ``refiner`` when given, scenes generated with ``--instances instances``: figures,
@@ -401,13 +403,15 @@ def test(workdir: pathlib.Path, data: pathlib.Path, out: pathlib.Path, cache: pa
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
+    from infer.shipped import CONTOUR
+
     log_friendly_progress()
     args = parse_args(argv)
     check_meshes(args)
     w = args.workdir
     data, records, cache = w / "data", w / "records", w / "cache"
     refiner = w / "refiner" if args.refiner_minutes > 0 else None
-    use_refiner = refiner
+    use_refiner = refiner or CONTOUR
     n = 6 if refiner else 5
     minutes: dict[str, float] = {}
 
@@ -444,16 +448,16 @@ def main(argv: Sequence[str] | None = None) -> dict:
         for line in refiner_lines(heldout):
             print(f"   {line}")
         if not refiner_helps(heldout):
-            print("   the refiner makes held-out poses worse: the test runs without it (object "
-                  "generation alone); train it longer (--refiner-minutes) or on more parts",
-                  flush=True)
-            use_refiner = None
+            print("   the trained refiner makes held-out poses worse: the contour refiner "
+                  "refines the test instead; train it longer (--refiner-minutes) or on more "
+                  "parts", flush=True)
+            use_refiner = CONTOUR
     elif "refiner" in budget:
         print(f"   note: --refiner-minutes 0: the refiner planned in {w / 'adapt.json'} is "
               "neither trained nor used")
 
     start = stage(f"{n}/{n} full-image test on new scenes -> {w / 'test'}"
-                   + (f", refined by {use_refiner}" if use_refiner else ""))
+                   + f", refined by {use_refiner}")
     report = test(w, data, w, cache, args.overlays, args.instances, refiner=use_refiner)
     minutes["test"] = done(start) / 60
     report.update(steps=steps, config=configs["detector"].model.variant, minutes=minutes)

@@ -60,16 +60,26 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
     assert "after refinement:  6D AP 0.050, AP-mm 0.025, segm AP 0.250" in out
 
 
-def test_demo_without_refiner_reports_object_generation(tmp_path, monkeypatch, capsys):
+def test_without_a_trained_refiner_the_contour_refiner_refines(tmp_path, monkeypatch, capsys):
+    """No 3PT-R ships and the adapted one is not used (it made held-out poses worse): both
+    settings are refined by the training-free contour refiner, and the summary says why."""
     import infer.shipped
 
     monkeypatch.setattr(infer.shipped, "shipped", {"detector": tmp_path / "d"}.get)
     monkeypatch.setattr(adapt, "main", lambda argv: {
-        "test": _figures(0.3, refined=False), "refiner": None, "overlays": "o"})
+        "test": _figures(0.3, refined=True), "refiner": "contour", "overlays": "o",
+        "refiner_trained": str(tmp_path / "adapted" / "refiner")})
     monkeypatch.setattr(adapt, "generate", lambda *a, **k: None)
-    monkeypatch.setattr(adapt, "test", lambda *a, refiner=None, **k: {
-        "test": _figures(0.05, refined=refiner is not None), "overlays": "o"})
-    demo.main(["--out", str(tmp_path), "--refiner-minutes", "0"])
-    out = capsys.readouterr().out
-    assert out.count("object generation (no refiner): 6D AP") == 2
-    assert "refinement" not in out
+    seen = []
+
+    def fake_test(*a, refiner=None, **k):
+        seen.append(refiner)
+        return {"test": _figures(0.05, refined=refiner is not None), "overlays": "o"}
+
+    monkeypatch.setattr(adapt, "test", fake_test)
+    demo.main(["--out", str(tmp_path)])
+    assert seen == ["contour"]
+    out = capsys.readouterr().out.split("done in")[1]
+    assert out.count("before refinement: 6D AP 0.100") == 2
+    assert "the trained refiner is not used (it makes held-out poses worse): the contour " \
+           "refiner refines instead" in out

@@ -245,12 +245,21 @@ def test_load_models_passes_the_refiner_run(monkeypatch, tmp_path):
     options.load_models(args)
     assert tuple(map(str, seen["args"])) == ("d", "best") and str(seen["refiner"]) == "r"
     assert seen["refiner_step"] == 7
-    # Without --workdir / --refiner: the shipped detector, and the shipped refiner (none yet).
+    # Without --workdir / --refiner: the shipped detector, and the contour refiner while no
+    # 3PT-R ships; a shipped 3PT-R when one does; --refiner none: no refiner.
+    import infer.shipped
+
     shipped = {"detector": tmp_path / "models" / "d", "refiner": None}
     monkeypatch.setattr(options, "shipped", shipped.get)
-    args = cli.build_parser().parse_args(["bop", "--dataset-dir", "x", "--out", "o"])
-    options.load_models(args)
-    assert seen["args"] == (shipped["detector"], "best") and seen["refiner"] is None
+    monkeypatch.setattr(infer.shipped, "shipped", shipped.get)
+    bare = ["bop", "--dataset-dir", "x", "--out", "o"]
+    options.load_models(cli.build_parser().parse_args(bare))
+    assert seen["args"] == (shipped["detector"], "best") and seen["refiner"] == "contour"
+    shipped["refiner"] = tmp_path / "models" / "r"
+    options.load_models(cli.build_parser().parse_args(bare))
+    assert seen["refiner"] == shipped["refiner"]
+    options.load_models(cli.build_parser().parse_args(bare + ["--refiner", "none"]))
+    assert seen["refiner"] is None
 
 
 def test_single_view_run_writes_refined_and_initial_results(bop_setup, tmp_path, monkeypatch):
@@ -473,7 +482,8 @@ def test_refine_only_input_errors_exit_2_naming_the_file(dataset, monkeypatch, c
     fails(base, "error:", str(csv), "scene 1 image 5")
     csv.write_text(_csv_row(2, 0, 1, 0.5, T, 0.1) + "\n")
     fails(base, "error:", str(csv), "scene 2 image 0")
-    # The options: --refine-only needs --refiner (none ships) and no detector.
-    fails([a for a in base if a not in ("--refiner", str(dataset / "ref"))],
-          "--refine-only needs --refiner")
+    # The options: --refine-only needs a refiner (the default one unless --refiner none) and
+    # no detector.
+    fails([a if a != str(dataset / "ref") else "none" for a in base],
+          "--refine-only refines with a refiner: drop --refiner none")
     fails(base + ["--workdir", str(dataset)], "drop --workdir")

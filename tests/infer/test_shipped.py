@@ -18,6 +18,7 @@ from infer.checkpoint import load_detector
 from tests.fixtures.cli import fails_naming
 from tests.fixtures.run_dirs import tiny_detector_run
 from threept_jax.data.run_dir import ModelFileError
+from threept_jax.pipeline.contour import ContourSettings
 from train import export
 
 
@@ -45,7 +46,8 @@ def test_exported_model_matches_sha256sum_and_loads_by_default(models_dir, tmp_p
     assert check.returncode == 0, check.stdout + check.stderr
     assert not list(folder.rglob("opt_state")) and not list(folder.rglob("data"))
     models = infer.load(cache_dir=None)
-    assert models.refiner is None  # none ships
+    # No 3PT-R ships: the training-free contour refiner is the default.
+    assert isinstance(models.refiner, ContourSettings)
     original, _, _ = load_detector(tmp_path / "run")
     for a, b in zip(_params(models.detector), _params(original), strict=True):
         np.testing.assert_array_equal(a, b)

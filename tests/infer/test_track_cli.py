@@ -204,8 +204,8 @@ def test_bad_input_is_named_before_loading(env, no_models, tmp_path, capsys):
     fails_naming(capsys, _argv(env, "--frames", frames, "--K", K, "--init", str(scaled)),
            "is not a rigid transform")
     no_refiner = _argv(env, "--frames", frames, "--K", K, "--init", init)
-    del no_refiner[1:3]
-    fails_naming(capsys, no_refiner, "track refines every frame: pass --refiner contour")
+    no_refiner[2] = "none"
+    fails_naming(capsys, no_refiner, "track refines every frame: drop --refiner none")
     fails_naming(capsys, _argv(env, "--frames", frames, frames, "--K", K, "--K", K, "--init", init),
            "2 views need each camera's pose")
     fails_naming(capsys, _argv(env, "--frames", frames, "--init", init), "0 --K for 1 view(s)")
