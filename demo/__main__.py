@@ -23,8 +23,8 @@ downloaded and nothing from outside the repository:
 
 A refiner trained for a few CPU minutes may not improve the poses yet: its held-out figures
 (rotation error and MSSD recall before and after its steps) are printed, and a refiner that
-makes held-out poses worse is not used (``train.adapt.refiner_helps``; ``--refiner-minutes 0``
-trains none): the contour refiner refines instead. The "before" and "after" figures say which
+does not make held-out poses better is not used (``train.adapt.refiner_helps``;
+``--refiner-minutes 0`` trains none): the contour refiner refines instead. The "before" and "after" figures say which
 way refinement went. Every stage resumes: run the same command again and finished stages are
 skipped (a killed data generation redoes only its unfinished scene, a killed training restarts
 from its last checkpoint). Outputs go to ``--out`` (default ``runs/demo``): ``report.json``,
@@ -114,7 +114,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     lines = [*summary("adapted (trained on these 5 parts)", adapted["test"]),
              *(f"    {line}" for line in refiner_lines(adapted.get("refiner_heldout") or {})),
-             *(["    the trained refiner is not used (it makes held-out poses worse): the "
+             *(["    the trained refiner is not used (it does not make held-out poses better): the "
                 "contour refiner refines instead"]
                if adapted.get("refiner_trained") not in (None, adapted["refiner"]) else []),
              *summary("zero-shot (the shipped models, 5 parts never seen)", unseen["test"])]

@@ -29,8 +29,9 @@ that with our own data engine, in stages that each resume when the command is ru
    best checkpoint by the held-out MSSD recall after refinement on the val records. Its
    held-out figures (:func:`refiner_heldout`: rotation error and MSSD recall before and after
    its steps, score accuracy) are printed and reported; a refiner whose steps lower the
-   held-out recall is not used for the test (:func:`refiner_helps`): the training-free contour
-   refiner (``--refiner contour``) refines instead, as it does without ``--refiner-minutes``.
+   held-out recall, or leaves it as it was, is not used for the test (:func:`refiner_helps`):
+   the training-free contour refiner (``--refiner contour``) refines instead, as it does
+   without ``--refiner-minutes``.
 6. **Test**: the best detector checkpoint (by full-image AP50 on the val scenes) runs ``python
    -m infer bop`` on the val scenes, whose best-F1 score becomes the overlay threshold, then on
    the test scenes: full images, every part queried, the best detections of an image whatever
@@ -357,14 +358,13 @@ def refiner_heldout(refiner: pathlib.Path) -> dict:
 
 
 def refiner_helps(h: dict) -> bool:
-    """Whether the refiner's held-out figures (:func:`refiner_heldout`) allow using it: its
-    steps must not lower the MSSD recall of the poses they start from (the rule inference warns
-    by, :func:`infer.checkpoint.heldout_check`). A refiner that makes
-    held-out poses worse is not used for the test (the report says so): it would lose every
-    user of it accuracy."""
-    from infer.checkpoint import heldout_check
-
-    return heldout_check({f"eval/{k}": v for k, v in h.items()}) is None
+    """Whether the refiner's held-out figures (:func:`refiner_heldout`) earn it the test: its
+    steps must raise the MSSD recall of the poses they start from. One that makes held-out
+    poses worse (the rule inference warns by, :func:`infer.checkpoint.heldout_check`) would
+    lose every user of it accuracy, and one that leaves them as they were (a few CPU minutes of
+    training often does: the safe updates refuse its steps) is no better than the
+    training-free contour refiner, which refines the test instead."""
+    return h["ar_mssd_after"] > h["ar_mssd_before"]
 
 
 def refiner_lines(h: dict) -> list[str]:
@@ -448,9 +448,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
         for line in refiner_lines(heldout):
             print(f"   {line}")
         if not refiner_helps(heldout):
-            print("   the trained refiner makes held-out poses worse: the contour refiner "
-                  "refines the test instead; train it longer (--refiner-minutes) or on more "
-                  "parts", flush=True)
+            print("   the trained refiner does not make held-out poses better: the contour "
+                  "refiner refines the test instead; train it longer (--refiner-minutes) or on "
+                  "more parts", flush=True)
             use_refiner = CONTOUR
     elif "refiner" in budget:
         print(f"   note: --refiner-minutes 0: the refiner planned in {w / 'adapt.json'} is "

@@ -81,5 +81,5 @@ def test_without_a_trained_refiner_the_contour_refiner_refines(tmp_path, monkeyp
     assert seen == ["contour"]
     out = capsys.readouterr().out.split("done in")[1]
     assert out.count("before refinement: 6D AP 0.100") == 2
-    assert "the trained refiner is not used (it makes held-out poses worse): the contour " \
-           "refiner refines instead" in out
+    assert "the trained refiner is not used (it does not make held-out poses better): the " \
+           "contour refiner refines instead" in out

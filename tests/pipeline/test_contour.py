@@ -135,6 +135,36 @@ def test_offset_from_the_start_follows_the_step_parametrisation():
         C.ContourSettings(prior=-0.1)
 
 
+def test_a_refinement_that_moves_out_of_reach_keeps_its_start():
+    """within_reach against hand-made poses: turns about the object's centre (off the origin,
+    so the translation changes too) of 29 and 31 degrees against the 30 degree reach, and
+    shifts of the centre by 0.95 and 1.05 diameters against the one-diameter reach."""
+    settings = C.ContourSettings()
+    center, radius = np.array([10.0, -20.0, 5.0]), 40.0
+    start = np.eye(4)
+    start[:3, :3] = Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix()
+    start[:3, 3] = [5.0, 0.0, 600.0]
+
+    def turned(deg):
+        T = start.copy()
+        c = start[:3, :3] @ center + start[:3, 3]
+        T[:3, :3] = Rotation.from_rotvec(np.radians(deg) * np.array([0.6, 0.0, 0.8])
+                                         ).as_matrix() @ start[:3, :3]
+        T[:3, 3] = c - T[:3, :3] @ center  # the centre stays where it was
+        return T
+
+    def shifted(diameters):
+        T = start.copy()
+        T[:3, 3] += diameters * 2 * radius * np.array([0.0, 0.6, -0.8])
+        return T
+
+    poses = np.stack([start, turned(29.0), turned(31.0), shifted(0.95), shifted(1.05)])
+    ok = C.within_reach(jnp.asarray(poses, jnp.float32), jnp.asarray(np.stack([start] * 5),
+                        jnp.float32), jnp.full((5, 3), center, jnp.float32),
+                        jnp.full(5, radius, jnp.float32), settings)
+    assert np.asarray(ok).tolist() == [True, True, False, True, False]
+
+
 def _scene(mesh, views, seed=0):
     """``mesh`` on a noisy grey background seen by ``views`` cameras 400 mm away."""
     rng = np.random.default_rng(seed)

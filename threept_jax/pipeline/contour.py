@@ -195,6 +195,10 @@ class ContourSettings:
     max_step_deg, max_step_diameter: a trust region: one iteration turns the pose by at most
       this many degrees and moves it by at most this share of the diameter (a step is scaled
       down as a whole to fit).
+    max_move_deg, max_move_diameter: the reach of a refinement: a refined pose turned further
+      than this from its start, or whose centre moved further than this share of the
+      diameter, is not a refinement of that start but another object or a strong edge
+      elsewhere (a tray's rim, a striped border) that pulled it away: the start is kept.
     """
 
     scales: tuple[float, ...] = (0.04, 0.02, 0.01, 0.005)
@@ -211,6 +215,8 @@ class ContourSettings:
     prior: float = 0.05
     max_step_deg: float = 10.0
     max_step_diameter: float = 0.2
+    max_move_deg: float = 30.0
+    max_move_diameter: float = 1.0
 
     def __post_init__(self):
         if self.evidence not in ("region", "edges", "both"):
@@ -419,8 +425,22 @@ def _update(poses: Array, starts: Array, ev: LineEvidence, center: Array, radius
     return new.at[:, :3, 3].set(t + jnp.einsum("pij,pj->pi", R, t_obj))
 
 
+def within_reach(poses: Array, starts: Array, center: Array, radius: Array,
+                 settings: ContourSettings) -> Array:
+    """[P] whether poses [P, 4, 4] stay within ``settings``' reach of their starts: turned by
+    at most ``max_move_deg`` and the object's centre moved by at most ``max_move_diameter``
+    diameters (2 ``radius``)."""
+    R, R0 = poses[:, :3, :3], starts[:, :3, :3]
+    cos = (jnp.trace(jnp.einsum("pji,pjk->pik", R0, R), axis1=-2, axis2=-1) - 1.0) / 2.0
+    turn = jnp.degrees(jnp.arccos(jnp.clip(cos, -1.0, 1.0)))
+    moved = jnp.linalg.norm(jnp.einsum("pij,pj->pi", R - R0, center)
+                            + poses[:, :3, 3] - starts[:, :3, 3], axis=-1)
+    return (turn <= settings.max_move_deg) & (moved <= settings.max_move_diameter * 2.0 * radius)
+
+
 class ContourResult(NamedTuple):
-    """poses [P, 4, 4] (each the refined pose, or its start where that scored higher), scores
+    """poses [P, 4, 4] (each the refined pose, or its start where that scored higher or the
+    refined pose left its reach, :func:`within_reach`), scores
     [P] (:func:`contour_score` of those), start_scores [P], refined_scores [P], lines [P]
     (valid lines over the views at the finest spacing)."""
 
@@ -470,7 +490,8 @@ def refine_poses(model: ContourModel, images: Array, Ks: Array, T_cam_world: Arr
     finest = min(settings.scales)
     s0, _ = contour_score(evidence(poses, finest), view_mask)
     s1, lines = contour_score(evidence(refined, finest), view_mask)
-    keep = (s1 >= s0) & jnp.isfinite(refined).all((-2, -1))
+    keep = ((s1 >= s0) & jnp.isfinite(refined).all((-2, -1))
+            & within_reach(refined, poses, center, radius, settings))
     out = jnp.where(keep[:, None, None], refined, poses)
     return ContourResult(poses=out, scores=jnp.maximum(s0, jnp.where(keep, s1, s0)),
                          start_scores=s0, refined_scores=s1, lines=lines)
