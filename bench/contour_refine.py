@@ -18,10 +18,13 @@ worse (MSSD grew by more than 1 % of the diameter), and the ratio of each median
 (the reference, same starts, same process). Then the score test: 5 starts per instance at the
 10 degree / 30 mm rung, each refined; does the highest contour score pick the refined pose of
 lowest MSSD (chance 20 %)? Times: the first call (compilation) apart from the warm calls, and
-warm milliseconds per object per view per Gauss-Newton iteration.
+warm milliseconds per object per view per Gauss-Newton iteration. ``--refiner RUN`` adds the
+rows of a trained 3PT-R (render-and-compare, its best checkpoint) on the same starts;
+``--opencv`` those of OpenCV's ``cv2.rapid`` trackers.
 
     python bench/contour_refine.py [--data runs/contour] [--rungs 5:10 10:30 20:60]
-        [--evidence region edges both] [--prior 0 0.1] [--out contour.json]
+        [--evidence region edges both] [--prior 0 0.1] [--opencv] [--refiner RUN]
+        [--out contour.json]
 """
 
 from __future__ import annotations
@@ -269,6 +272,22 @@ def score_test(groups, views, built, num=5, seed=1):
     return picked / max(total, 1), total
 
 
+def run_3ptr(run_dir: pathlib.Path, data: pathlib.Path, min_visib: float, rungs) -> list[dict]:
+    """The rows of :func:`run` for a trained 3PT-R on the same starts (same seeds)."""
+    import infer
+
+    models = infer.load(None, refiner=run_dir, cache_dir=None)
+    rows = []
+    for name, views_list in (("cell", (1,)), ("rig", (1, 3))):
+        ds, groups = load_groups(data / name, min_visib)
+        objects = refine_objects({k: m.path for k, m in ds.models().items()})
+        built = (objects, models.scene_refiner(objects), 0.0)
+        for views in views_list:
+            out, _ = run(name, groups, views, rungs, ContourSettings(), built)
+            rows += [dict(r, evidence=f"3PT-R {run_dir}") for r in out]
+    return rows
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", type=pathlib.Path, default=ROOT / "runs" / "contour")
@@ -281,6 +300,9 @@ def main(argv=None):
     p.add_argument("--opencv", action="store_true",
                    help="also run OpenCV contrib's cv2.rapid trackers (RAPID, OLS, GOS) on the "
                         "same 1-view starts")
+    p.add_argument("--refiner", type=pathlib.Path, default=None, metavar="RUN",
+                   help="also refine the same starts with this 3PT-R run (its best checkpoint, "
+                        "infer.refine.SceneRefiner: the --refiner RUN of the commands)")
     p.add_argument("--out", type=pathlib.Path, default=None)
     args = p.parse_args(argv)
     warnings.simplefilter("ignore")
@@ -313,6 +335,8 @@ def main(argv=None):
                     acc, n = score_test(groups, views, built)
                     scores.append({"data": name, "views": views, "evidence": evidence,
                                    "best_of_5_picked": acc, "instances": n})
+    if args.refiner is not None:
+        table += run_3ptr(args.refiner, args.data, args.min_visib, rungs)
     print("\n| evidence | data | views | rung | n | rotation deg start -> after (ratio) | "
           "translation mm start -> after (ratio) | MSSD AR start -> after | worse |")
     print("|---|---|---|---|---|---|---|---|---|")

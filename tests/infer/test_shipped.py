@@ -86,9 +86,8 @@ def test_damaged_missing_or_foreign_files_name_the_file_and_git_checkout(models_
 
 
 def test_cli_without_workdir_uses_the_shipped_detector_and_reports_damage(models_dir, tmp_path,
-                                                                         capsys):
-    mesh = pathlib.Path(__file__).parents[2].parent / "shared" / "meshes"
-    ply = next(mesh.rglob("*.ply"))
+                                                                         capsys, bop_models_dir):
+    ply = next(bop_models_dir.rglob("*.ply"))
     image = tmp_path / "a.png"
     cv2.imwrite(str(image), np.zeros((48, 64, 3), np.uint8))
     argv = ["images", "--mesh", f"1={ply}", "--image", str(image), "--K", "60,60,31.5,23.5",
