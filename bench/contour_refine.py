@@ -20,7 +20,9 @@ worse (MSSD grew by more than 1 % of the diameter), and the ratio of each median
 lowest MSSD (chance 20 %)? Times: the first call (compilation) apart from the warm calls, and
 warm milliseconds per object per view per Gauss-Newton iteration. ``--refiner RUN`` adds the
 rows of a trained 3PT-R (render-and-compare, its best checkpoint) on the same starts;
-``--opencv`` those of OpenCV's ``cv2.rapid`` trackers.
+``--opencv`` those of OpenCV's ``cv2.rapid`` trackers; ``--verifier`` the verifier test
+(:func:`verifier_test`: does the score tell good detections from ones elsewhere or of the wrong
+part?).
 
     python bench/contour_refine.py [--data runs/contour] [--rungs 5:10 10:30 20:60]
         [--evidence region edges both] [--prior 0 0.1] [--opencv] [--refiner RUN]
@@ -272,6 +274,52 @@ def score_test(groups, views, built, num=5, seed=1):
     return picked / max(total, 1), total
 
 
+def verifier_test(groups, views, built, seed=2):
+    """Is the refined contour score a detection verifier? Positives: every instance from its
+    truth moved by 5 deg / 10 mm (a good detection). Negatives, refined the same way: the same
+    part moved 1.5-3 diameters sideways in the first camera's image plane with a random
+    rotation (a detection on clutter or on another part), and another part of the dataset at
+    the instance's true pose (the right place, the wrong part). Each set of an image is refined
+    in one call (its instances hide each other, as in a scene). Returns the ROC AUC of the
+    score against each kind of negative (SciPy's Mann-Whitney U / (n_pos n_neg); 0.5: chance)
+    and the median scores."""
+    from scipy.stats import mannwhitneyu
+
+    objects, refiner, _ = built
+    models = {o.obj_id: o for o in objects}
+    ids = sorted(models)
+    rng = np.random.default_rng(seed)
+    scores = {"true": [], "elsewhere": [], "other part": []}
+    for images, Ks, T_cw, insts in tqdm(groups, desc=f"verifier {views}v", leave=False):
+        images, Ks, T_cw = images[:views], Ks[:views], T_cw[:views]
+        cams = T_cw if views > 1 or not np.allclose(T_cw[0], np.eye(4)) else None
+        obj = [o for o, _ in insts]
+        true = [jitter(T, np.asarray(models[o].mesh.center, np.float64), 5.0, 10.0, rng)
+                for o, T in insts]
+        away = []
+        for o, T in insts:
+            d = float(models[o].mesh.diameter)
+            angle = rng.uniform(0, 2 * np.pi)
+            shift_cam = rng.uniform(1.5, 3.0) * d * np.array([np.cos(angle), np.sin(angle), 0])
+            moved = jitter(T, np.asarray(models[o].mesh.center, np.float64), 180.0 *
+                           rng.random(), 0.0, rng)
+            moved[:3, 3] += T_cw[0][:3, :3].T @ shift_cam
+            away.append(moved)
+        other = [int(rng.choice([i for i in ids if i != o])) for o in obj]
+        for key, o_ids, hyps in (("true", obj, true), ("elsewhere", obj, away),
+                                 ("other part", other, [T for _, T in insts])):
+            scores[key] += [r.score for r in refiner(images, Ks, cams, o_ids, hyps)]
+    pos = np.asarray(scores["true"])
+    out = {"median_true": float(np.median(pos))}
+    for key in ("elsewhere", "other part"):
+        neg = np.asarray(scores[key])
+        u = mannwhitneyu(pos, neg, alternative="greater").statistic
+        out[f"auc_vs_{key.replace(' ', '_')}"] = float(u / (len(pos) * len(neg)))
+        out[f"median_{key.replace(' ', '_')}"] = float(np.median(neg))
+    out["instances"] = len(pos)
+    return out
+
+
 def run_3ptr(run_dir: pathlib.Path, data: pathlib.Path, min_visib: float, rungs) -> list[dict]:
     """The rows of :func:`run` for a trained 3PT-R on the same starts (same seeds)."""
     import infer
@@ -297,6 +345,9 @@ def main(argv=None):
                    help="ContourSettings.prior values to compare (the pull back to the start)")
     p.add_argument("--min-visib", type=float, default=0.5)
     p.add_argument("--no-score-test", action="store_true")
+    p.add_argument("--verifier", action="store_true",
+                   help="the verifier test (verifier_test): does the contour score separate "
+                        "good detections from detections elsewhere and of the wrong part?")
     p.add_argument("--opencv", action="store_true",
                    help="also run OpenCV contrib's cv2.rapid trackers (RAPID, OLS, GOS) on the "
                         "same 1-view starts")
@@ -309,7 +360,7 @@ def main(argv=None):
     if not (args.data / "cell").exists():
         generate(args.data)
     rungs = [tuple(float(x) for x in r.split(":")) for r in args.rungs]
-    table, times, scores = [], [], []
+    table, times, scores, verifiers = [], [], [], []
     combos = [(e, q) for e in args.evidence for q in args.prior]
     cache = pathlib.Path(tempfile.mkdtemp(prefix="contour-bench-"))
     onboard = {}
@@ -331,6 +382,9 @@ def main(argv=None):
                 times.append(t)
                 if args.opencv and views == 1 and first:
                     table += run_opencv(name, ds, groups, rungs)
+                if args.verifier:
+                    v = verifier_test(groups, views, built)
+                    verifiers.append({"data": name, "views": views, "evidence": evidence, **v})
                 if not args.no_score_test and views == views_list[-1]:
                     acc, n = score_test(groups, views, built)
                     scores.append({"data": name, "views": views, "evidence": evidence,
@@ -356,10 +410,17 @@ def main(argv=None):
         print(f"score test {s['evidence']} {s['data']} {s['views']} view(s): the top score "
               f"picks the best of 5 refined poses {100 * s['best_of_5_picked']:.0f} % of "
               f"{s['instances']} instances (chance 20 %)")
+    for v in verifiers:
+        print(f"verifier {v['evidence']} {v['data']} {v['views']} view(s), {v['instances']} "
+              f"instances: ROC AUC of the refined score, good detections against detections "
+              f"elsewhere {v['auc_vs_elsewhere']:.2f}, against the wrong part at the right "
+              f"place {v['auc_vs_other_part']:.2f} (0.5: chance); median scores "
+              f"{v['median_true']:.3f} / {v['median_elsewhere']:.3f} / "
+              f"{v['median_other_part']:.3f}")
     shutil.rmtree(cache, ignore_errors=True)
     if args.out:
-        args.out.write_text(json.dumps({"table": table, "times": times, "scores": scores},
-                                       indent=1))
+        args.out.write_text(json.dumps({"table": table, "times": times, "scores": scores,
+                                        "verifiers": verifiers}, indent=1))
 
 
 if __name__ == "__main__":
