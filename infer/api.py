@@ -273,7 +273,8 @@ class TrackedFrame:
 def track(frames, cameras: Sequence[Camera | np.ndarray], objects: Sequence[OnboardedObject],
           models: Models, init: Sequence[tuple[int, np.ndarray]] | None = None, *,
           min_score: float = 0.0, **detector_options: Any):
-    """Track objects through a sequence by 3PT-R, re-detecting when confidence drops.
+    """Track objects through a sequence by render-and-compare refinement (the loaded refiner:
+    3PT-R or the contour refiner), re-detecting when confidence drops.
 
     Each frame (a list of V images, or one image for V = 1) refines every instance from its pose
     in the previous frame (:func:`refine`). When ``init`` is None on the first frame, any

@@ -52,7 +52,8 @@ class Instance:
       masks: {view index: bool [H, W]} in every view (when requested): rendered silhouettes of
         the pose, or the refiner's visible masks after refinement.
       T_world_obj_initial: the pose before refinement (None when not refined).
-      refine_score: the refiner's score logit of the refined pose (None when not refined).
+      refine_score: the refiner's score of the refined pose (None when not refined): the
+        contour refiner's contour score in [0, 1], or a 3PT-R's logit.
     """
 
     obj_id: int
