@@ -56,7 +56,8 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
 def add_track_parser(sub) -> argparse.ArgumentParser:
     """Register ``track`` on the ``python -m infer`` subparsers ``sub``."""
-    p = sub.add_parser("track", help="track objects through image sequences or a video (3PT-R)",
+    p = sub.add_parser("track", help="track objects through image sequences or a video "
+                                     "(refined every frame)",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     common_options(p, workdir_when="without --init (the first frame is detected) and for re-detection "
                             "(--min-score, or nothing tracked)")
