@@ -9,6 +9,12 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 jax.config.update("jax_num_cpu_devices", 4)
+# The commands under test turn on JAX's persistent compilation cache (``options.load_models``)
+# for the whole worker process, pointing into a test's temporary folder: a later test of the
+# same worker then wrote compiled programs there, and jax 0.10 crashed with a segmentation
+# fault in ``compilation_cache.put_executable_and_time`` (seen in ``test_refiner_learning``
+# after a command's test on the same worker). Tests never use the persistent cache.
+jax.config.update("jax_enable_compilation_cache", False)
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHARED_MESHES = ROOT.parent / "shared" / "meshes" / "bop"
