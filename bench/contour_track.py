@@ -33,13 +33,13 @@ import time
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import infer  # noqa: E402
+from bench.contour_refine import jitter  # noqa: E402
 from infer.refine import refine_objects  # noqa: E402
 from threept_jax.geometry.camera import look_at  # noqa: E402
 from threept_jax.pipeline.contour import ContourSettings  # noqa: E402
@@ -81,20 +81,6 @@ def errors(T, T_gt):
     dR = T[:3, :3].T @ T_gt[:3, :3]
     return (float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))),
             float(np.linalg.norm(T[:3, 3] - T_gt[:3, 3])))
-
-
-def start_pose(T_gt, center, seed=1):
-    """The first frame's truth turned by 3 degrees about a random axis through the centre and
-    moved by 5 mm."""
-    rng = np.random.default_rng(seed)
-    axis = rng.standard_normal(3)
-    dR = Rotation.from_rotvec(np.radians(3.0) * axis / np.linalg.norm(axis)).as_matrix()
-    step = rng.standard_normal(3)
-    out = T_gt.copy()
-    c = T_gt[:3, :3] @ center + T_gt[:3, 3]
-    out[:3, :3] = dR @ T_gt[:3, :3]
-    out[:3, 3] = c + 5.0 * step / np.linalg.norm(step) - out[:3, :3] @ center
-    return out
 
 
 def summarise(name, poses, truth, latencies, diameter, held):
@@ -171,7 +157,9 @@ def main(argv=None):
     print(f"{args.frames} frames of T-LESS obj {args.obj} rendered in "
           f"{time.perf_counter() - t:.1f} s", flush=True)
     diameter = float(obj.mesh.diameter)
-    start = start_pose(truth[0], np.asarray(obj.mesh.center, np.float64))
+    # The first frame's truth turned by 3 degrees about its centre and moved by 5 mm.
+    start = jitter(truth[0], np.asarray(obj.mesh.center, np.float64), 3.0, 5.0,
+                   np.random.default_rng(1))
     held = summarise("held at the start (reference)", [start] * len(truth), truth,
                      [0.0] * len(truth), diameter, None)
     rows = [held]
