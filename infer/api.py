@@ -36,6 +36,7 @@ from infer.masks import PoseRenderer
 from infer.onboarding import ONBOARD_TEMPLATES, OnboardedObject, Onboarder
 from infer.refine import RefinedPose, SceneRefiner, refine_objects
 from infer.scene import Instances, assign_pixels, find_instances
+from infer.shape_detect import ShapeSearchDetector
 from infer.shipped import CONTOUR, default_refiner, shipped
 from threept_jax.data.bop import Camera
 from threept_jax.geometry.validate import validate_intrinsics
@@ -44,12 +45,18 @@ from threept_jax.models.detector import Detector
 from threept_jax.models.refiner import Refiner
 from threept_jax.pipeline.contour import ContourSettings
 from threept_jax.pipeline.refinement import RefineSettings
+from threept_jax.pipeline.shape_search import ShapeSearchSettings
 from threept_jax.render import Mesh
 
 DEFAULT_CACHE = pathlib.Path(os.environ.get("THREEPT_CACHE", "~/.cache/threept_jax")).expanduser()
 
 __all__ = ["Camera", "Models", "TrackedFrame", "load", "run_scene", "refine", "track",
-           "DEFAULT_CACHE"]
+           "DEFAULT_CACHE", "DETECTORS"]
+
+#: The detectors ``load(detector=...)`` and the commands' ``--detector`` name: "3pt", the
+#: 3PT-D network (a training run, or the shipped one), and "templates", the training-free shape
+#: search from the CAD model alone (:mod:`infer.shape_detect`).
+DETECTORS = ("3pt", "templates")
 
 
 @dataclasses.dataclass
@@ -57,14 +64,16 @@ class Models:
     """The trained networks, loaded once, and what is built from them per object set.
 
     Attributes:
-      detector: the 3PT-D network (None when only a refiner was loaded); config: its
-        ``DetectorConfig``; step: its checkpoint step.
+      detector: the 3PT-D network (None when only a refiner was loaded, or with the
+        training-free detector); config: its ``DetectorConfig``; step: its checkpoint step.
       onboarder: turns meshes into :class:`OnboardedObject` (cached on disk under the model).
       refiner: the 3PT-R network, with ``refiner_config``, ``refiner_step`` and
         ``refine_settings`` (the options it was trained with); or the training-free contour
         refiner's :class:`~threept_jax.pipeline.contour.ContourSettings`
         (``load(refiner="contour")``, :class:`infer.contour_refine.ContourRefiner`); None: no
         refinement.
+      shape_search: the training-free detector's settings (``load(detector="templates")``,
+        :class:`infer.shape_detect.ShapeSearchDetector`), None with 3PT-D.
     """
 
     detector: Detector | None
@@ -76,6 +85,7 @@ class Models:
     refiner_step: int | None = None
     refine_settings: RefineSettings | None = None
     cache_dir: pathlib.Path | None = None
+    shape_search: ShapeSearchSettings | None = None
     # Per-object-set caches; not init fields, so a dataclasses.replace starts empty ones.
     _scene_detectors: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
     _pose_renderers: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
@@ -83,7 +93,11 @@ class Models:
 
     def onboard(self, meshes: Mapping[int, str | os.PathLike | Mesh], units: str = "mm"
                 ) -> list[OnboardedObject]:
-        """Onboard ``{obj_id: mesh file or Mesh}`` (mesh units checked on load)."""
+        """Onboard ``{obj_id: mesh file or Mesh}`` (mesh units checked on load). The
+        training-free detector needs only the meshes (and builds its templates when it first
+        sees an object set)."""
+        if self.shape_search is not None:
+            return refine_objects(dict(meshes), units=units)
         if self.onboarder is None:
             raise ValueError("onboarding needs a detector: infer.load(DETECTOR_RUN, ...)")
         return self.onboarder.onboard_all(dict(meshes), units=units)
@@ -105,15 +119,26 @@ class Models:
                                                          self.refine_settings, objects)
         return self._scene_refiners[key]
 
-    def scene_detector(self, objects: Sequence[OnboardedObject], **options: Any) -> SceneDetector:
-        """The :class:`SceneDetector` of these objects and options, built once and reused, so
-        its compiled functions (one per image size) survive across calls."""
+    def scene_detector(self, objects: Sequence[OnboardedObject], **options: Any
+                       ) -> SceneDetector | ShapeSearchDetector:
+        """The detector of these objects and options, built once and reused, so its compiled
+        functions (one per image size) survive across calls: a :class:`SceneDetector` (3PT-D)
+        or, with ``load(detector="templates")``, a :class:`ShapeSearchDetector` (options
+        ``depth_range``, ``score_threshold``, ``max_detections``)."""
         key = (tuple(o.obj_id for o in objects),
                tuple(sorted((k, tuple(np.ravel(v)) if np.ndim(v) else v)
                             for k, v in options.items())))
         if key not in self._scene_detectors:
-            self._scene_detectors[key] = SceneDetector(self.detector, self.config, objects,
-                                                       **options)
+            if self.shape_search is not None:
+                if options.pop("num_scales", None) is not None:
+                    raise ValueError("num_scales is a 3PT-D option (pan-and-scan); the templates "
+                                     "detector searches the whole image: drop it")
+                cache = None if self.cache_dir is None else self.cache_dir / "contours"
+                self._scene_detectors[key] = ShapeSearchDetector(
+                    objects, settings=self.shape_search, cache_dir=cache, **options)
+            else:
+                self._scene_detectors[key] = SceneDetector(self.detector, self.config, objects,
+                                                           **options)
         return self._scene_detectors[key]
 
     def pose_renderer(self, objects: Sequence[OnboardedObject]) -> PoseRenderer:
@@ -126,7 +151,7 @@ class Models:
 
 def load(workdir=None, step: int | str = "best", *, refiner=None,
          refiner_step: int | str = "best", cache_dir=DEFAULT_CACHE,
-         num_templates: int = ONBOARD_TEMPLATES) -> Models:
+         num_templates: int = ONBOARD_TEMPLATES, detector: str = "3pt") -> Models:
     """Load a detector training run or exported model (``step``: ``"best"``, ``"latest"`` or a
     number) with an onboarder whose cache lives under ``cache_dir/onboarding`` (None: no disk
     cache), and/or a refiner run (``refiner``, ``refiner_step``; ``"contour"``: the
@@ -135,7 +160,23 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
     that ship in ``models/`` (:mod:`infer.shipped`): the detector and the default refiner
     (:func:`infer.shipped.default_refiner`: the shipped 3PT-R when one ships, else the contour
     refiner); a missing or damaged file of theirs raises an error naming it and how to restore
-    it."""
+    it.
+
+    ``detector="templates"``: the training-free detector
+    (:class:`infer.shape_detect.ShapeSearchDetector`, no network; ``workdir`` must be None)
+    and the default refiner unless ``refiner`` names another (drop it with
+    ``dataclasses.replace(models, refiner=None)``)."""
+    if detector not in DETECTORS:
+        raise ValueError(f"detector must be one of {', '.join(DETECTORS)}, got {detector!r}")
+    if detector == "templates":
+        if workdir is not None:
+            raise ValueError("a detector run (workdir) is 3PT-D: pass detector='3pt', or drop "
+                             "workdir for the training-free templates detector")
+        models = load(None, refiner=refiner or default_refiner(), refiner_step=refiner_step,
+                      cache_dir=cache_dir)
+        return dataclasses.replace(models, shape_search=ShapeSearchSettings(),
+                                   cache_dir=None if cache_dir is None else
+                                   pathlib.Path(cache_dir))
     if workdir is None and refiner is None:
         workdir, refiner = shipped("detector"), default_refiner()
     models = Models(None, None, None, None)
@@ -204,9 +245,13 @@ def run_scene(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarra
     if isinstance(objects, Mapping):
         objects = models.onboard(objects, units=units)
     objects = list(objects)
-    if models.detector is None:
-        raise ValueError("run_scene needs a detector: infer.load(DETECTOR_RUN, ...); to refine "
-                         "poses from another method use infer.refine")
+    if models.detector is None and models.shape_search is None:
+        raise ValueError("run_scene needs a detector: infer.load(DETECTOR_RUN, ...) or "
+                         "infer.load(detector='templates'); to refine poses from another "
+                         "method use infer.refine")
+    if models.shape_search is not None and len(images) > 1:
+        raise ValueError("the templates detector is single-view for now: run it per view, or "
+                         "use 3PT-D (detector='3pt') for a rig's fused detections")
     detector = models.scene_detector(objects, **detector_options)
     refining = refine and models.refiner is not None
     renderer = models.pose_renderer(objects) if with_masks and not refining else None

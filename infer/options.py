@@ -10,6 +10,7 @@ import this module; it imports none of them.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import pathlib
 from collections.abc import Sequence
@@ -17,7 +18,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from infer.api import DEFAULT_CACHE, Camera, load
+from infer.api import DEFAULT_CACHE, DETECTORS, Camera, load
 from infer.onboarding import ONBOARD_TEMPLATES
 from infer.shipped import default_refiner, describe, shipped
 from threept_jax.geometry.validate import validate_intrinsics, validate_rigid
@@ -77,6 +78,11 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
                    help="a detector training run (train/launch.py --workdir) or exported model; "
                         f"default: {describe('detector')}"
                         + ("" if workdir_when is None else f"; used {workdir_when}"))
+    p.add_argument("--detector", choices=DETECTORS, default="3pt",
+                   help="3pt: the 3PT-D network (--workdir, default the shipped one); "
+                        "templates: no network, the parts found from their CAD models alone "
+                        "(selective-search proposals, contour templates fitted to each, the best "
+                        "poses verified by the contour refiner; one view)")
     p.add_argument("--step", type=checkpoint_step, default="best",
                    help="checkpoint: best, latest or a step number")
     p.add_argument("--num-templates", type=int_at_least(1), default=ONBOARD_TEMPLATES,
@@ -138,10 +144,16 @@ def load_models(args, detector: bool = True):
 
     jax.config.update("jax_compilation_cache_dir", str(args.cache_dir / "jax"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    refining = hasattr(args, "refiner") and str(args.refiner) != "none"
+    refiner = (args.refiner or default_refiner()) if refining else None
+    if detector and args.detector == "templates":
+        if args.workdir is not None:
+            raise ValueError("--workdir is a 3PT-D run; --detector templates needs no network: "
+                             "drop one of them")
+        models = load(refiner=refiner, refiner_step=getattr(args, "refiner_step", "best"),
+                      cache_dir=args.cache_dir, detector="templates")
+        return models if refining else dataclasses.replace(models, refiner=None)
     workdir = (args.workdir or shipped("detector")) if detector else None
-    refiner = None
-    if hasattr(args, "refiner") and str(args.refiner) != "none":
-        refiner = args.refiner or default_refiner()
     if workdir is None and refiner is None:
         raise ValueError("no model to load: --refiner none leaves this command nothing to run; "
                          "drop it (the default refiner) or pass --refiner contour|RUN")
@@ -151,9 +163,11 @@ def load_models(args, detector: bool = True):
 
 
 def detector_options(args) -> dict:
-    return dict(num_scales=args.num_scales, depth_range=args.depth_range,
-                score_threshold=args.score_threshold,
-                max_detections=args.max_detections)
+    options = dict(depth_range=args.depth_range, score_threshold=args.score_threshold,
+                   max_detections=args.max_detections)
+    if args.num_scales is not None:
+        options["num_scales"] = args.num_scales
+    return options
 
 
 def read_rgb(path) -> np.ndarray:

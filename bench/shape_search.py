@@ -1,0 +1,145 @@
+"""The training-free detector (issue 37): box AP and seconds per image against 3PT-D.
+
+On a BOP split with ground truth (default: the demo cell's held-out test images,
+``runs/demo/zero_shot/data/test``, written by ``make demo``; or the held-out cell scenes of
+``bench/contour_refine.py``, ``runs/contour/cell``), every image queried with all of the
+dataset's parts, the cell's depth range from its ``cell.json``:
+
+* the templates detector (:class:`infer.shape_detect.ShapeSearchDetector`, no network):
+  onboarding seconds per part (contour views rendered, or read from the cache, and templates),
+  the first image (cold: compilation) and the median of the others (warm), and the time of each
+  stage on the last image;
+* the shipped 3PT-D (:class:`infer.detect.SceneDetector`) on the same images in the same
+  process, the reference of the time ratio;
+* box AP50 / AP of each (COCO, the dataset's amodal boxes clipped to the image as the BOP
+  evaluation does), and with part identities ignored (is anything found at all).
+
+This is the detector alone; the BOP 6D AP after refinement comes from ``python -m infer bop
+--detector templates --evaluate`` (docs/benchmarks.md).
+
+    python bench/shape_search.py [--data DIR] [--images 8] [--candidates 600] [--out F.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import sys
+import time
+
+import numpy as np
+from tqdm import tqdm
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import infer  # noqa: E402
+from infer.api import DEFAULT_CACHE  # noqa: E402
+from infer.refine import refine_objects  # noqa: E402
+from infer.shape_detect import ShapeSearchDetector  # noqa: E402
+from threept_jax.data import bop  # noqa: E402
+from threept_jax.eval.bop_eval import evaluate_detection_results  # noqa: E402
+from threept_jax.pipeline import shape_search as ss  # noqa: E402
+
+
+def box_ap(data, split, dets):
+    """(AP50, AP) with parts, and AP50 with every detection and GT counted as one part."""
+    ap = evaluate_detection_results(data, dets, split=split)["bbox"]
+    return ap["ap50"], ap["ap"]
+
+
+def run(detect, split, keys):
+    """Detections2D and seconds per image of ``detect(image, K)``."""
+    out, seconds = [], []
+    for s, im in tqdm(keys, desc="images", leave=False):
+        scene = split.scene(s)
+        image, K = scene.image(im), scene.cameras[im].K
+        t = time.perf_counter()
+        found = detect(image, K)
+        seconds.append(time.perf_counter() - t)
+        for d in found:
+            x0, y0, x1, y1 = (float(v) for v in d.box)
+            out.append(bop.Detection2D(s, im, d.obj_id, d.score, (x0, y0, x1 - x0, y1 - y0)))
+    return out, seconds
+
+
+def stage_seconds(detector, image, K):
+    """Seconds of each stage of one (warm) detection."""
+    st = detector.settings
+    t = time.perf_counter()
+    boxes = ss.proposals(image, st)
+    t1 = time.perf_counter()
+    ss.orientation_response(image, st.spread, st.min_gradient)
+    t2 = time.perf_counter()
+    detector.detect(image, K)
+    t3 = time.perf_counter()
+    return {"proposals": t1 - t, "response": t2 - t1, "total": t3 - t2, "num_proposals": len(boxes)}
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--data", type=pathlib.Path, default=ROOT / "runs/demo/zero_shot/data/test")
+    p.add_argument("--split", default="val_pbr")
+    p.add_argument("--images", type=int, default=8)
+    p.add_argument("--candidates", type=int, default=None, help="poses verified per image")
+    p.add_argument("--proposals", type=int, default=None, help="selective-search boxes")
+    p.add_argument("--no-3pt", action="store_true", help="skip the 3PT-D reference")
+    p.add_argument("--cache-dir", type=pathlib.Path, default=DEFAULT_CACHE)
+    p.add_argument("--out", type=pathlib.Path, default=None)
+    args = p.parse_args(argv)
+    if not args.data.exists():
+        sys.exit(f"{args.data} not found: run `make demo` (or bench/contour_refine.py for "
+                 "runs/contour/cell) first, or pass --data")
+    ds = bop.BopDataset(args.data)
+    split = ds.split(args.split)
+    cell = bop.load_cell(args.data)
+    depth = None if cell is None else tuple(cell["depth_range_mm"])
+    keys = [(s, im) for s in split.scene_ids for im in split.scene(s).image_ids][:args.images]
+    meshes = {k: m.path for k, m in ds.models().items()}
+    settings = ss.ShapeSearchSettings()
+    over = {k: v for k, v in (("candidates", args.candidates),
+                              ("max_proposals", args.proposals)) if v is not None}
+    settings = dataclasses.replace(settings, **over)
+
+    t = time.perf_counter()
+    objects = refine_objects(meshes)
+    detector = ShapeSearchDetector(objects, depth_range=depth, score_threshold=0.0,
+                                   max_detections=30, settings=settings,
+                                   cache_dir=args.cache_dir / "contours")
+    onboard = (time.perf_counter() - t) / len(objects)
+    dets, seconds = run(detector.detect, split, keys)
+    scene = split.scene(keys[-1][0])
+    stages = stage_seconds(detector, scene.image(keys[-1][1]), scene.cameras[keys[-1][1]].K)
+    ap50, ap = box_ap(args.data, args.split, dets)
+    agn = evaluate_detection_results(args.data, [dataclasses.replace(d, obj_id=min(meshes))
+                                                 for d in dets], split=args.split)
+    result = {"data": str(args.data), "images": len(keys), "parts": len(objects),
+              "settings": {k: v for k, v in dataclasses.asdict(settings).items()
+                           if k != "contour"},
+              "templates": {"onboard_s_per_part": onboard, "cold_s": seconds[0],
+                            "warm_s": float(np.median(seconds[1:])) if len(seconds) > 1 else None,
+                            "stages_s": stages, "box_ap50": ap50, "box_ap": ap}}
+    del agn  # identities ignored would need the GT relabelled too; not reported
+    print(f"templates: onboarding {onboard:.1f} s/part, cold {seconds[0]:.1f} s, warm "
+          f"{result['templates']['warm_s']:.2f} s/image ({len(objects)} parts), box AP50 "
+          f"{ap50:.3f}, AP {ap:.3f}; stages {json.dumps({k: round(v, 2) for k, v in stages.items()})}")
+    if not args.no_3pt:
+        models = infer.load(cache_dir=args.cache_dir)
+        onboarded = models.onboard(meshes)
+        d3 = models.scene_detector(onboarded, depth_range=depth, score_threshold=0.0,
+                                   max_detections=30)
+        dets3, sec3 = run(d3.detect, split, keys)
+        a50, a = box_ap(args.data, args.split, dets3)
+        warm3 = float(np.median(sec3[1:])) if len(sec3) > 1 else sec3[0]
+        result["3pt"] = {"cold_s": sec3[0], "warm_s": warm3, "box_ap50": a50, "box_ap": a}
+        print(f"3PT-D (shipped): cold {sec3[0]:.1f} s, warm {warm3:.2f} s/image, box AP50 "
+              f"{a50:.3f}, AP {a:.3f}; templates / 3PT-D warm time: "
+              f"{result['templates']['warm_s'] / warm3:.2f}x")
+    if args.out:
+        args.out.write_text(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()

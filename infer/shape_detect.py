@@ -1,0 +1,145 @@
+"""The training-free detector: shape search from the CAD model alone (``--detector templates``).
+
+:class:`ShapeSearchDetector` has the interface of :class:`infer.detect.SceneDetector`
+(``objects``, ``detect(image, K)`` -> :class:`infer.detect.Detections`) and needs no network:
+selective-search proposals, each part's contour templates fitted to each proposal, the best
+poses refined and scored by the contour refiner
+(:mod:`threept_jax.pipeline.shape_search`). Its detections carry a refined pose, so the
+render-and-compare stage (the contour refiner by default) starts where the search ended; its
+score is the contour score in [0, 1] (held-out medians in docs/benchmarks.md).
+
+Building it renders each mesh's contour views once (the contour refiner's cache under
+``cache_dir``, a few seconds per mesh on 2 CPU cores); the first image of a size compiles the
+template fit and the verification (cold), later images reuse them (warm).
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+from collections.abc import Sequence
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from infer.contour_refine import _cached_contours
+from infer.detect import Detection, Detections
+from threept_jax.geometry.validate import validate_intrinsics
+from threept_jax.pipeline.contour import stack_contours
+from threept_jax.pipeline.shape_search import (
+    ShapeSearchSettings,
+    fit_templates,
+    orientation_response,
+    poses_from_fit,
+    proposals,
+    shape_templates,
+    stack_templates,
+    verify,
+)
+
+#: Without a depth range, objects are searched from this projected diameter (px) to the image's
+#: longer side.
+MIN_DIAMETER_PX = 32.0
+
+
+class ShapeSearchDetector:
+    """Detects objects (anything with ``obj_id`` and ``mesh``, mm) by shape search (module
+    docstring). ``depth_range``: (zmin, zmax) mm of the objects' centres from the camera (a
+    cell's ``cell.json``); None: any distance at which an object appears 32 px to the image's
+    size. ``score_threshold``: contour score a detection must exceed; ``max_detections`` per
+    image."""
+
+    def __init__(self, objects: Sequence, *, depth_range: tuple[float, float] | None = None,
+                 score_threshold: float = 0.1, max_detections: int = 100,
+                 settings: ShapeSearchSettings | None = None,
+                 cache_dir: str | os.PathLike | None = None):
+        if not objects:
+            raise ValueError("no objects to detect: give at least one mesh")
+        if depth_range is not None:
+            lo, hi = (float(z) for z in depth_range)
+            if not 0 < lo < hi:
+                raise ValueError(f"depth_range must be 0 < zmin < zmax in mm, got {depth_range}")
+        self.objects = sorted(objects, key=lambda o: o.obj_id)
+        self.depth_range = None if depth_range is None else (lo, hi)
+        self.score_threshold = float(score_threshold)
+        self.max_detections = int(max_detections)
+        self.settings = settings or ShapeSearchSettings()
+        cache = None if cache_dir is None else pathlib.Path(cache_dir)
+        contours = [_cached_contours(o.mesh, cache) for o in self.objects]
+        self.model = stack_contours(contours)
+        self.templates = stack_templates([shape_templates(c, self.settings) for c in contours])
+        self._empty = ~self.templates.valid.any((1, 2))  # objects whose renders have no outline
+        self.centers = np.stack([c["center"] for c in contours])
+        self.diameters = np.array([2.0 * float(c["radius"]) for c in contours])
+
+    def _depths(self, o: int, K: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+        if self.depth_range is not None:
+            return np.asarray(self.depth_range, np.float32)
+        f = float(np.sqrt(K[0, 0] * K[1, 1]))
+        d = self.diameters[o]
+        return np.array([f * d / max(hw), f * d / MIN_DIAMETER_PX], np.float32)
+
+    def detect(self, image: np.ndarray, K: np.ndarray) -> Detections:
+        """Detections in one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3] (pixels of
+        this image), best first; ``best_score`` is the best contour score of any candidate."""
+        image = np.asarray(image)
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise ValueError(f"image must be uint8 RGB [H, W, 3], got {image.dtype} "
+                             f"{image.shape}")
+        hw = image.shape[:2]
+        K = validate_intrinsics(K, "K", image_hw=hw).astype(np.float64)
+        s = self.settings
+        boxes = proposals(image, s)
+        if not len(boxes) or self._empty.all():
+            return Detections()
+        # A fixed proposal count: one compiled fit per image size.
+        padded = np.zeros((s.max_proposals, 4), np.float32)
+        padded[:, 2:] = 1.0
+        padded[:len(boxes)] = boxes
+        response = jnp.asarray(orientation_response(image, s.spread, s.min_gradient))
+        found = []  # (template score, object, pose)
+        for o in np.flatnonzero(~self._empty):
+            t = self.templates
+            score, idx, depth, uv = jax.device_get(fit_templates(
+                response, padded, t.xy[o], t.bins[o], t.valid[o], K.astype(np.float32),
+                self._depths(o, K, hw), box_fit=s.box_fit, k=s.per_proposal))
+            score, idx, depth, uv = (a[:len(boxes)] for a in (score, idx, depth, uv))
+            keep = np.asarray(cv2.dnn.NMSBoxes(boxes.tolist(), score[:, 0].tolist(), 1e-6,
+                                               s.proposal_nms), int).ravel()
+            if not len(keep):
+                continue
+            sc, ix, z, c = (a[keep].reshape(-1, *a.shape[2:]) for a in (score, idx, depth, uv))
+            ok = sc > 0
+            poses = poses_from_fit(t.rotations[o][ix[ok]].astype(np.float64),
+                                   np.broadcast_to(self.centers[o], (ok.sum(), 3)),
+                                   z[ok].astype(np.float64), c[ok].astype(np.float64), K)
+            found += [(float(a), int(o), p) for a, p in zip(sc[ok], poses)]
+        if not found:
+            return Detections()
+        found.sort(key=lambda x: -x[0])
+        found = found[:s.candidates]
+        n = len(found)
+        poses = np.stack([p for _, _, p in found] + [found[0][2]] * (s.candidates - n))
+        obj = np.array([o for _, o, _ in found] + [found[0][1]] * (s.candidates - n), np.int32)
+        refined, scores, xyxy = jax.device_get(verify(
+            self.model, jnp.asarray(image), jnp.asarray(K, jnp.float32),
+            jnp.asarray(poses, jnp.float32), jnp.asarray(obj), settings=s.contour,
+            lines=s.lines))
+        refined, scores, xyxy, obj = refined[:n], scores[:n], xyxy[:n], obj[:n]
+        finite = np.isfinite(scores) & np.isfinite(xyxy).all(1)
+        order = [i for i in np.argsort(-np.where(finite, scores, -np.inf)) if finite[i]]
+        xywh = [[float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])]
+                for b in xyxy]
+        keep = np.asarray(cv2.dnn.NMSBoxes([xywh[i] for i in order],
+                                           [float(scores[i]) for i in order],
+                                           self.score_threshold, s.nms_iou), int).ravel()
+        dets = Detections(best_score=float(np.max(scores[finite])) if finite.any() else -np.inf)
+        for j in keep[:self.max_detections]:
+            i = order[j]
+            o = self.objects[obj[i]]
+            dets.append(Detection(o.obj_id, xyxy[i].astype(np.float32), float(scores[i]),
+                                  refined[i][None].astype(np.float32),
+                                  np.array([scores[i]], np.float32), np.zeros(0, np.float32)))
+        return dets

@@ -1,0 +1,260 @@
+"""Training-free detection by shape search: class-agnostic proposals, a pose search per
+proposal, verification by the contour score.
+
+Nothing here is learned; a part is found from its CAD model alone (issue 37's baseline, the one
+every learned detector must beat). Three stages per image:
+
+1. **Proposals** (:func:`proposals`): OpenCV's selective search (Uijlings et al., IJCV 2013;
+   ``cv2.ximgproc``, the "fast" strategy on the image at half size): class-agnostic boxes of
+   regions that hang together in colour, texture and size. On the held-out cell images its
+   first 300 boxes hold a box within IoU 0.5 of 97 % of the visible parts.
+2. **Pose search** (:func:`search`): each part's contour templates (:func:`shape_templates`,
+   the contour model's stored views times in-plane turns, their outline points and normals in
+   the image plane) are fitted to each proposal: the template's box fixes the distance (its
+   area against the proposal's; inside the depth range, the aspect within ``box_fit`` IoU) and
+   the centre, and the template scores by the LINE-2D orientation similarity of its outline
+   with the image's gradients (:func:`orientation_response`: quantised orientations spread
+   over a few pixels, Hinterstoisser et al., PAMI 2012). Each part keeps its best
+   ``per_proposal`` templates per proposal, proposals thinned by NMS.
+3. **Verification** (:func:`verify`): the best ``candidates`` poses of the image are refined by
+   the contour refiner (:func:`threept_jax.pipeline.contour.refine_poses`) and scored by its
+   contour score (the posterior mass of the outline on the image's region boundary, in
+   [0, 1]); the refined poses' boxes are merged by NMS across parts.
+
+Shapes: O objects, R templates per object (views x in-plane turns), n outline points per
+template, B proposals, k templates kept per proposal.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import NamedTuple
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from threept_jax.geometry.grids import viewpoint_rotation
+from threept_jax.pipeline.contour import ContourModel, ContourSettings, refine_poses
+
+Array = jax.Array
+
+#: Quantised gradient orientations (modulo 180 degrees: a part may be darker or lighter than
+#: what is behind it).
+NUM_BINS = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class ShapeSearchSettings:
+    """Options of the shape search (hashable).
+
+    num_views: stored contour views used as templates (evenly spaced through the contour
+      model's Fibonacci sphere); num_inplane: turns of each about the optical axis;
+      num_points: outline points per template.
+    max_proposals: selective-search boxes per image; proposal_scale: the image scale it runs at.
+    box_fit: a template fits a proposal when their boxes, centred and the template scaled to
+      the proposal's area, overlap by this IoU.
+    per_proposal: templates kept per (proposal, part); proposal_nms: IoU of the NMS that thins
+      each part's proposals by their best template score.
+    candidates: poses refined and scored per image (the best by template score).
+    spread: half-width (px) of the orientation spreading; min_gradient: weakest gradient (Sobel
+      magnitude of the strongest colour channel, 0-255 images) that counts as an edge.
+    nms_iou: IoU of the final NMS across parts.
+    contour: the refinement and score of stage 3; lines: its correspondence lines per pose
+      (every ``n``-th point of the contour model's outlines, evenly spread).
+    """
+
+    num_views: int = 200
+    num_inplane: int = 24
+    num_points: int = 48
+    max_proposals: int = 300
+    proposal_scale: float = 0.5
+    box_fit: float = 0.6
+    per_proposal: int = 8
+    proposal_nms: float = 0.5
+    candidates: int = 300
+    spread: int = 2
+    min_gradient: float = 30.0
+    nms_iou: float = 0.5
+    contour: ContourSettings = ContourSettings(scales=(0.04, 0.02, 0.01), iterations=2)
+    lines: int = 100
+
+
+class ShapeTemplates(NamedTuple):
+    """Contour templates of O objects (stacked; numpy or jax arrays).
+
+    xy [O, R, n, 2]: outline points in the camera's image plane at unit depth scale (mm, x
+    right, y down, from the object's centre); bins [O, R, n] int32: quantised orientation of
+    each point's normal; valid [O, R, n]; rotations [O, R, 3, 3] R_cam_obj of each template.
+    """
+
+    xy: Array
+    bins: Array
+    valid: Array
+    rotations: Array
+
+
+def orientation_bin(dx, dy):
+    """Quantised orientation modulo 180 degrees of vectors (dx, dy), in [0, NUM_BINS): bin k
+    is centred on k * 180 / NUM_BINS degrees, so the horizontal, vertical and diagonal edges
+    of parts and images sit in the middle of a bin, not on a border between two."""
+    angle = np.mod(np.arctan2(dy, dx), np.pi)
+    return (np.floor(angle / np.pi * NUM_BINS + 0.5).astype(np.int32)) % NUM_BINS
+
+
+def shape_templates(contours: dict[str, np.ndarray], settings: ShapeSearchSettings
+                    ) -> dict[str, np.ndarray]:
+    """The templates of one object from its contour model (``mesh_contours``' arrays):
+    ``settings.num_views`` of its stored views (their outline points and normals, seen by a
+    camera along the view's direction) times ``num_inplane`` turns about the optical axis."""
+    dirs = np.asarray(contours["directions"], np.float64)
+    views = np.linspace(0, len(dirs), settings.num_views, endpoint=False).astype(int)
+    n_all = contours["points"].shape[1]
+    sub = np.linspace(0, n_all, settings.num_points, endpoint=False).astype(int)
+    turns = 2 * np.pi * np.arange(settings.num_inplane) / settings.num_inplane
+    Rz = np.zeros((len(turns), 3, 3))
+    Rz[:, 0, 0] = Rz[:, 1, 1] = np.cos(turns)
+    Rz[:, 0, 1], Rz[:, 1, 0] = -np.sin(turns), np.sin(turns)
+    Rz[:, 2, 2] = 1.0
+    R = np.einsum("tij,vjk->vtik", Rz, np.stack([viewpoint_rotation(dirs[v]) for v in views]))
+    P = np.asarray(contours["points"], np.float64)[views][:, sub] - contours["center"]
+    N = np.asarray(contours["normals"], np.float64)[views][:, sub]
+    q = np.einsum("vtij,vnj->vtni", R, P)
+    nrm = np.einsum("vtij,vnj->vtni", R, N)
+    valid = np.broadcast_to(np.asarray(contours["valid"])[views][:, sub][:, None], q.shape[:3])
+    T = len(views) * len(turns)
+    return {"xy": q[..., :2].reshape(T, -1, 2).astype(np.float32),
+            "bins": orientation_bin(nrm[..., 0], nrm[..., 1]).reshape(T, -1),
+            "valid": valid.reshape(T, -1).copy(), "rotations": R.reshape(T, 3, 3).astype(
+                np.float32)}
+
+
+def stack_templates(per_object) -> ShapeTemplates:
+    return ShapeTemplates(*(np.stack([t[k] for t in per_object])
+                            for k in ("xy", "bins", "valid", "rotations")))
+
+
+def orientation_response(image: np.ndarray, spread: int = 2, min_gradient: float = 30.0
+                         ) -> np.ndarray:
+    """[NUM_BINS, H, W] float32 LINE-2D response maps of a uint8 RGB image: entry [k, y, x] is
+    the best |cos| between orientation bin k and the quantised gradient orientations found
+    within ``spread`` px of (x, y) (gradients of the strongest colour channel, Sobel magnitude
+    above ``min_gradient``); 0 where there are none."""
+    img = np.asarray(image, np.float32)
+    gx = np.stack([cv2.Sobel(img[..., c], cv2.CV_32F, 1, 0, ksize=3) for c in range(3)])
+    gy = np.stack([cv2.Sobel(img[..., c], cv2.CV_32F, 0, 1, ksize=3) for c in range(3)])
+    mag = gx * gx + gy * gy
+    ch = np.argmax(mag, 0)[None]
+    gx, gy = np.take_along_axis(gx, ch, 0)[0], np.take_along_axis(gy, ch, 0)[0]
+    strong = np.take_along_axis(mag, ch, 0)[0] > min_gradient ** 2
+    b = orientation_bin(gx, gy)
+    kernel = np.ones((2 * spread + 1, 2 * spread + 1), np.uint8)
+    centres = np.arange(NUM_BINS) * np.pi / NUM_BINS
+    out = np.zeros((NUM_BINS,) + b.shape, np.float32)
+    for i in range(NUM_BINS):
+        present = cv2.dilate(((b == i) & strong).astype(np.uint8), kernel).astype(bool)
+        cos = np.abs(np.cos(centres - centres[i])).astype(np.float32)  # [asked]
+        for k in range(NUM_BINS):
+            np.maximum(out[k], np.where(present, cos[k], np.float32(0)), out=out[k])
+    return out
+
+
+def proposals(image: np.ndarray, settings: ShapeSearchSettings) -> np.ndarray:
+    """[B, 4] float32 xywh class-agnostic boxes of a uint8 RGB image (selective search, fast
+    strategy, at ``proposal_scale``), at most ``max_proposals``, in selective search's order."""
+    s = settings.proposal_scale
+    small = cv2.resize(cv2.cvtColor(np.asarray(image), cv2.COLOR_RGB2BGR), None, fx=s, fy=s,
+                       interpolation=cv2.INTER_AREA)
+    ss = cv2.ximgproc.segmentation.createSelectiveSearchSegmentation()
+    ss.setBaseImage(small)
+    ss.switchToSelectiveSearchFast()
+    boxes = ss.process()[:settings.max_proposals].astype(np.float32) / s
+    return boxes.reshape(-1, 4)
+
+
+@functools.partial(jax.jit, static_argnames=("box_fit", "k"))
+def fit_templates(response: Array, boxes: Array, xy: Array, bins: Array, valid: Array,
+                  K: Array, depth_range: Array, box_fit: float, k: int):
+    """The best ``k`` templates of one object in each proposal.
+
+    response [NUM_BINS, H, W] (:func:`orientation_response`); boxes [B, 4] xywh; xy, bins, valid
+    [R, n] (one object's :class:`ShapeTemplates`); K [3, 3]; depth_range [2] mm (object
+    centres). Returns scores [B, k] (mean response over the outline; -1 where no template fits
+    the box), template index [B, k], depth [B, k] (mm) and centre [B, k, 2] (px, the object
+    centre's projection). Jitted (one compilation per image size and template count)."""
+    fx, fy = K[0, 0], K[1, 1]
+    big = jnp.float32(1e9)
+    lo = jnp.min(jnp.where(valid[..., None], xy, big), 1)  # [R, 2]
+    hi = jnp.max(jnp.where(valid[..., None], xy, -big), 1)
+    size = jnp.maximum(hi - lo, 1e-3)
+    bw, bh = boxes[:, 2:3], boxes[:, 3:4]
+    Z = jnp.sqrt(fx * size[:, 0] * fy * size[:, 1] / jnp.maximum(bw * bh, 1.0))  # [B, R]
+    pw, ph = fx * size[:, 0] / Z, fy * size[:, 1] / Z
+    inter = jnp.minimum(pw, bw) * jnp.minimum(ph, bh)
+    fits = ((inter / (pw * ph + bw * bh - inter) >= box_fit)
+            & (Z >= depth_range[0]) & (Z <= depth_range[1]) & jnp.any(valid, -1))
+    cu = boxes[:, 0:1] + bw / 2 - (lo[:, 0] + hi[:, 0]) / 2 * fx / Z
+    cv = boxes[:, 1:2] + bh / 2 - (lo[:, 1] + hi[:, 1]) / 2 * fy / Z
+    H, W = response.shape[1:]
+    n_valid = jnp.maximum(jnp.sum(valid, -1), 1)
+
+    def one(args):
+        cu_, cv_, Z_, fits_ = args  # [R]
+        u = jnp.round(cu_[:, None] + xy[..., 0] * fx / Z_[:, None]).astype(jnp.int32)
+        v = jnp.round(cv_[:, None] + xy[..., 1] * fy / Z_[:, None]).astype(jnp.int32)
+        inside = valid & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        r = response[bins, jnp.clip(v, 0, H - 1), jnp.clip(u, 0, W - 1)]
+        s = jnp.where(fits_, jnp.sum(jnp.where(inside, r, 0.0), -1) / n_valid, -1.0)
+        top, idx = jax.lax.top_k(s, k)
+        return top, idx, Z_[idx], jnp.stack([cu_[idx], cv_[idx]], -1)
+
+    return jax.lax.map(one, (cu, cv, Z, fits))
+
+
+def poses_from_fit(rotations: np.ndarray, center: np.ndarray, depth: np.ndarray,
+                   uv: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """[P, 4, 4] T_cam_obj of templates ``rotations`` [P, 3, 3] whose object centre ``center``
+    [P, 3] (object frame) projects to ``uv`` [P, 2] at depth ``depth`` [P] (mm)."""
+    rays = np.concatenate([uv, np.ones((len(uv), 1))], -1) @ np.linalg.inv(K).T
+    T = np.tile(np.eye(4), (len(uv), 1, 1))
+    T[:, :3, :3] = rotations
+    T[:, :3, 3] = rays * depth[:, None] - np.einsum("pij,pj->pi", rotations, center)
+    return T
+
+
+def outline_boxes(model: ContourModel, poses: Array, obj: Array, K: Array) -> Array:
+    """[P, 4] xyxy boxes of the outlines (the nearest stored view's contour points) of objects
+    ``obj`` [P] at poses [P, 4, 4] T_cam_obj."""
+
+    def one(T, o):
+        R, t = T[:3, :3], T[:3, 3]
+        d = -R.T @ t - model.center[o]
+        v = jnp.argmax(model.directions[o] @ (d / jnp.maximum(jnp.linalg.norm(d), 1e-9)))
+        X = model.points[o, v] @ R.T + t
+        uv = X[:, :2] / jnp.maximum(X[:, 2:], 1e-6) * jnp.stack([K[0, 0], K[1, 1]]) + K[:2, 2]
+        ok = model.valid[o, v][:, None]
+        return jnp.concatenate([jnp.min(jnp.where(ok, uv, 1e9), 0),
+                                jnp.max(jnp.where(ok, uv, -1e9), 0)])
+
+    return jax.vmap(one)(poses, obj)
+
+
+@functools.partial(jax.jit, static_argnames=("settings", "lines"))
+def verify(model: ContourModel, image: Array, K: Array, poses: Array, obj: Array,
+           settings: ContourSettings, lines: int) -> tuple[Array, Array, Array]:
+    """Refine candidate poses [P, 4, 4] T_cam_obj of objects ``obj`` [P] in one image (uint8
+    [H, W, 3]) with the contour refiner on ``lines`` outline points, no occluders; returns the
+    poses, their contour scores [P] and outline boxes [P, 4] xyxy (of the full outlines)."""
+    P = poses.shape[0]
+    full, n = model, model.points.shape[2]
+    if lines < n:  # a coarser outline: every (n / lines)-th point
+        pick = jnp.asarray(np.linspace(0, n, lines, endpoint=False).astype(np.int32))
+        model = model._replace(points=model.points[:, :, pick], normals=model.normals[:, :, pick],
+                               valid=model.valid[:, :, pick])
+    none = -jnp.ones((1, 8, 8), jnp.int32)
+    res = refine_poses(model, image[None], K[None], jnp.eye(4)[None], poses, obj,
+                       jnp.arange(P, dtype=jnp.int32), none, jnp.zeros((1, 8, 8)),
+                       jnp.ones((P, 1), bool), settings)
+    return res.poses, res.scores, outline_boxes(full, res.poses, obj, K)
