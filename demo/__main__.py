@@ -1,6 +1,6 @@
 """The main job on built-in defaults: ``python -m demo`` (what ``make demo`` runs).
 
-Both ways 3PT is used, on full images, on a 2-core CPU in at most 15 minutes, with nothing
+The ways 3PT is used, on full images, on a 2-core CPU in at most 15 minutes, with nothing
 downloaded and nothing from outside the repository:
 
 1. **Adapted** (``python -m train.adapt``, a user's own parts): five procedural parts of a fixed
@@ -15,7 +15,11 @@ downloaded and nothing from outside the repository:
    refines it (the trained 3PT-R when its held-out check passes, else the training-free contour
    refiner): box AP50, and BOP 6D AP, AP-mm and segmentation AP before refinement (object
    generation alone) and after it.
-2. **Zero-shot**: five other procedural parts, never seen in training, are onboarded from
+2. **No training** (``--detector templates``): the same cell, the same test images, its parts
+   found from their CAD models alone (``infer/shape_detect.py``: selective-search proposals,
+   contour templates fitted to each, the best poses verified by the contour refiner), then
+   refined by the contour refiner. The baseline every learned detector must beat.
+3. **Zero-shot**: five other procedural parts, never seen in training, are onboarded from
    their meshes alone and detected by the shipped models, as a user who installs threept_jax
    gets them, in a cell of their own (val scenes choose the overlay threshold, test scenes give
    the figures), and refined by the shipped refiner when one ships, else by the contour
@@ -24,11 +28,12 @@ downloaded and nothing from outside the repository:
 A refiner trained for a few CPU minutes may not improve the poses yet: its held-out figures
 (rotation error and MSSD recall before and after its steps) are printed, and a refiner that
 does not make held-out poses better is not used (``train.adapt.refiner_helps``;
-``--refiner-minutes 0`` trains none): the contour refiner refines instead. The "before" and "after" figures say which
-way refinement went. Every stage resumes: run the same command again and finished stages are
+``--refiner-minutes 0`` trains none): the contour refiner refines instead. The "before" and
+"after" figures say which way refinement went. Every stage resumes: run the same command again and finished stages are
 skipped (a killed data generation redoes only its unfinished scene, a killed training restarts
 from its last checkpoint). Outputs go to ``--out`` (default ``runs/demo``): ``report.json``,
-the two settings' overlays (``adapted/test/overlays``, ``zero_shot/test/overlays``: boxes, the
+the settings' overlays (``adapted/test/overlays``, ``no_training/test/overlays``,
+``zero_shot/test/overlays``: boxes, the
 contours of the refined poses in colour and of the poses before refinement in white, at least
 640 px wide, only detections above the best-F1
 threshold of the val scenes). What 2 cores reach in these minutes, and the curve of AP against
@@ -59,6 +64,16 @@ def zero_shot(out: pathlib.Path, test_scenes: int, seed: int) -> dict:
     adapt.generate(args, out / "data", sets=("val", "test"))
     return adapt.test(shipped("detector"), out / "data", out, out / "cache", overlays=6,
                       instances=args.instances, refiner=default_refiner())
+
+
+def no_training(adapted_dir: pathlib.Path, out: pathlib.Path) -> dict:
+    """The adapted setting's val and test scenes (the cell's parts), detected by the
+    training-free templates detector and refined by the contour refiner."""
+    from infer.shipped import CONTOUR
+    from train import adapt
+
+    return adapt.test(None, adapted_dir / "data", out, out / "cache", overlays=6,
+                      instances=adapt.INSTANCES, refiner=CONTOUR)
 
 
 def summary(name: str, figs: dict) -> list[str]:
@@ -101,13 +116,19 @@ def main(argv: Sequence[str] | None = None) -> dict:
         "--train-scenes", str(args.train_scenes), "--test-scenes", str(args.test_scenes),
         "--refiner-minutes", f"{args.refiner_minutes:g}"])
 
+    print(f"\n== no training: the templates detector on the same cell and test images -> "
+          f"{args.out / 'no_training'}", flush=True)
+    start = time.perf_counter()
+    templates = no_training(args.out / "adapted", args.out / "no_training")
+    print(f"   ({time.perf_counter() - start:.0f} s)")
+
     print(f"\n== zero-shot: the shipped models on 5 parts never seen in training -> "
           f"{args.out / 'zero_shot'}", flush=True)
     start = time.perf_counter()
     unseen = zero_shot(args.out / "zero_shot", args.test_scenes, ZERO_SHOT_SEED)
     print(f"   ({time.perf_counter() - start:.0f} s)")
 
-    report = {"adapted": adapted, "zero_shot": unseen,
+    report = {"adapted": adapted, "no_training": templates, "zero_shot": unseen,
               "minutes": (time.perf_counter() - total) / 60}
     (args.out / "report.json").write_text(json.dumps(report, indent=1, default=float))
     from train.adapt import refiner_lines
@@ -117,11 +138,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
              *(["    the trained refiner is not used (it does not make held-out poses better): the "
                 "contour refiner refines instead"]
                if adapted.get("refiner_trained") not in (None, adapted["refiner"]) else []),
+             *summary("no training (templates detector + contour refiner, same images)",
+                      templates["test"]),
              *summary("zero-shot (the shipped models, 5 parts never seen)", unseen["test"])]
     print(f"\ndone in {report['minutes']:.1f} min. Full images, all parts queried, new scenes:\n"
           + "\n".join(f"  {line}" for line in lines)
-          + f"\nReport {args.out / 'report.json'}; overlays {adapted['overlays']} and "
-          f"{unseen['overlays']}")
+          + f"\nReport {args.out / 'report.json'}; overlays {adapted['overlays']}, "
+          f"{templates['overlays']} and {unseen['overlays']}")
     return report
 
 

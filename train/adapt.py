@@ -66,6 +66,8 @@ from train.stages import (
 
 #: Evaluations and checkpoints over a run.
 NUM_EVALS = 4
+#: Mean part instances per generated scene (``--instances``).
+INSTANCES = 8
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -103,7 +105,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--spp", type=int, default=2,
                    help="path-tracing samples per pixel, denoised (bench/datagen_quality.py: 2 "
                         "denoised samples are closer to the converged image than 32 raw ones)")
-    p.add_argument("--instances", type=int, default=8, help="mean part instances per scene")
+    p.add_argument("--instances", type=int, default=INSTANCES,
+                   help="mean part instances per scene")
     p.add_argument("--seed", type=int, default=0, help="scenes (and procedural parts)")
     p.add_argument("--overlays", type=int, default=6, help="test overlays written")
     args = p.parse_args(argv)
@@ -280,19 +283,22 @@ def max_detections(instances: int) -> int:
     return max(1, math.floor((1 + SceneConfig.instance_spread) * instances))
 
 
-def infer_bop(workdir: pathlib.Path, dataset: pathlib.Path, out: pathlib.Path, cache: pathlib.Path,
-              max_detections: int, overlays: int = 0, overlay_threshold: float | None = None,
-              refiner: pathlib.Path | str | None = None, obj_ids: Sequence[int] = (),
-              targets: str = "all") -> dict:
-    """``python -m infer bop --evaluate`` of the best detector checkpoint of ``workdir`` (and
-    of ``refiner`` when given: a run's best checkpoint or ``"contour"``) on ``dataset``'s ``val_pbr`` images, the
+def infer_bop(workdir: pathlib.Path | None, dataset: pathlib.Path, out: pathlib.Path,
+              cache: pathlib.Path, max_detections: int, overlays: int = 0,
+              overlay_threshold: float | None = None, refiner: pathlib.Path | str | None = None,
+              obj_ids: Sequence[int] = (), targets: str = "all") -> dict:
+    """``python -m infer bop --evaluate`` of the best detector checkpoint of ``workdir`` (None:
+    the training-free templates detector, ``--detector templates``), and of ``refiner`` when
+    given (a run's best checkpoint or ``"contour"``), on ``dataset``'s ``val_pbr`` images, the
     ``max_detections`` best detections of an image whatever their score; every object of the
     dataset queried, or ``obj_ids``; ``targets="bop19"``: each image queried with the objects
     of its BOP19 targets."""
     from infer.cli import main as infer_main
 
-    argv = ["bop", "--workdir", str(workdir), "--step", "best", "--dataset-dir", str(dataset),
-            "--split", "val_pbr", "--targets", targets, "--evaluate", "--num-templates", "512",
+    detector = (["--detector", "templates"] if workdir is None else
+                ["--workdir", str(workdir), "--step", "best", "--num-templates", "512"])
+    argv = ["bop", *detector, "--dataset-dir", str(dataset),
+            "--split", "val_pbr", "--targets", targets, "--evaluate",
             "--score-threshold", "0", "--max-detections", str(max_detections),
             "--out", str(out), "--overlays", str(overlays), "--cache-dir", str(cache)]
     if overlay_threshold is not None:
@@ -385,9 +391,11 @@ def refiner_lines(h: dict) -> list[str]:
             f"{h['score_acc']:.2f} of the time"]
 
 
-def test(workdir: pathlib.Path, data: pathlib.Path, out: pathlib.Path, cache: pathlib.Path,
-         overlays: int, instances: int, refiner: pathlib.Path | str | None = None) -> dict:
-    """The best checkpoint of ``workdir`` on ``data/val`` (whose best-F1 score becomes the
+def test(workdir: pathlib.Path | None, data: pathlib.Path, out: pathlib.Path,
+         cache: pathlib.Path, overlays: int, instances: int,
+         refiner: pathlib.Path | str | None = None) -> dict:
+    """The best checkpoint of ``workdir`` (None: the training-free templates detector) on
+    ``data/val`` (whose best-F1 score becomes the
     overlay threshold; detection alone, no refinement) and on ``data/test``, refined by
     ``refiner`` when given, scenes generated with ``--instances instances``: figures,
     threshold and the overlays' folder."""

@@ -30,7 +30,7 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
                 "overlays": str(w / "test" / "overlays")}
 
     def fake_test(workdir, data, out, cache, overlays, instances, refiner=None):
-        calls["zero_shot"] = (workdir, refiner)
+        calls[out.name] = (workdir, data, refiner)
         # A worse "after" than "before" is reported as it is.
         return {"test": _figures(0.05, refined=refiner is not None),
                 "overlays": str(out / "test" / "overlays")}
@@ -48,14 +48,17 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
     assert float(argv[argv.index("--refiner-minutes") + 1]) > 0  # a refiner by default
     assert argv[argv.index("--from") + 1] == "scratch"  # the tiny detector of a few minutes
     # The zero-shot parts meet the shipped models, as a user who installs threept_jax does.
-    assert calls["zero_shot"] == (models["detector"], models["refiner"])
+    assert calls["zero_shot"][::2] == (models["detector"], models["refiner"])
+    # No training: the templates detector (no workdir) on the adapted setting's own scenes,
+    # refined by the contour refiner.
+    assert calls["no_training"] == (None, tmp_path / "out" / "adapted" / "data", "contour")
     saved = json.loads((tmp_path / "out" / "report.json").read_text())
-    for setting in ("adapted", "zero_shot"):
+    for setting in ("adapted", "no_training", "zero_shot"):
         assert saved[setting]["test"]["pose_ap_initial"] == pytest.approx(0.1)
         assert saved[setting]["test"]["pose_ap_mm_initial"] == pytest.approx(0.1)
     assert report["zero_shot"]["test"]["pose_ap"] == pytest.approx(0.05)
     out = capsys.readouterr().out.split("done in")[1]
-    assert out.count("before refinement: 6D AP 0.100, AP-mm 0.100, segm AP 0.100") == 2
+    assert out.count("before refinement: 6D AP 0.100, AP-mm 0.100, segm AP 0.100") == 3
     assert "after refinement:  6D AP 0.300, AP-mm 0.150, segm AP 0.250" in out
     assert "after refinement:  6D AP 0.050, AP-mm 0.025, segm AP 0.250" in out
 
@@ -78,8 +81,8 @@ def test_without_a_trained_refiner_the_contour_refiner_refines(tmp_path, monkeyp
 
     monkeypatch.setattr(adapt, "test", fake_test)
     demo.main(["--out", str(tmp_path)])
-    assert seen == ["contour"]
+    assert seen == ["contour", "contour"]  # no training, then zero-shot
     out = capsys.readouterr().out.split("done in")[1]
-    assert out.count("before refinement: 6D AP 0.100") == 2
+    assert out.count("before refinement: 6D AP 0.100") == 3
     assert "the trained refiner is not used (it does not make held-out poses better): the " \
            "contour refiner refines instead" in out
