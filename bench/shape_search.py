@@ -5,7 +5,9 @@ On a BOP split with ground truth (default: the demo cell's held-out test images,
 ``bench/contour_refine.py``, ``runs/contour/cell``), every image queried with all of the
 dataset's parts, the cell's depth range from its ``cell.json``:
 
-* the templates detector (:class:`infer.shape_detect.ShapeSearchDetector`, no network):
+* the templates detector (:class:`infer.shape_detect.ShapeSearchDetector`, no network; with
+  ``--per-image`` each image queried with the parts it shows, as a cell that knows its tray's
+  parts):
   onboarding seconds per part (contour views rendered, or read from the cache, and templates),
   the first image (cold: compilation) and the median of the others (warm), and the time of each
   stage on the last image;
@@ -52,12 +54,17 @@ def box_ap(data, split, dets):
     return ap["ap50"], ap["ap"]
 
 
-def run(detect, split, keys):
-    """Detections2D and seconds per image of ``detect(image, K)``."""
+def run(detect, split, keys, per_image=None):
+    """Detections2D and seconds per image of ``detect(image, K)``; with ``per_image(parts)``
+    (a detector of those parts), each image is queried with the parts it shows and timed on
+    a second call (warm: a new part count compiles)."""
     out, seconds = [], []
     for s, im in tqdm(keys, desc="images", leave=False):
         scene = split.scene(s)
         image, K = scene.image(im), scene.cameras[im].K
+        if per_image is not None:
+            detect = per_image(sorted({g.obj_id for g in scene.gt[im]})).detect
+            detect(image, K)
         t = time.perf_counter()
         found = detect(image, K)
         seconds.append(time.perf_counter() - t)
@@ -88,6 +95,9 @@ def main(argv=None):
     p.add_argument("--candidates", type=int, default=None, help="poses verified per image")
     p.add_argument("--proposals", type=int, default=None, help="selective-search boxes")
     p.add_argument("--no-3pt", action="store_true", help="skip the 3PT-D reference")
+    p.add_argument("--per-image", action="store_true",
+                   help="query each image with the parts it shows (a cell that knows its "
+                        "tray's parts) instead of every part of the dataset; templates only")
     p.add_argument("--no-depth-range", action="store_true",
                    help="ignore the cell's depth range (a user without a cell: templates from "
                         "32 px to the image size, 3PT-D's pan-and-scan over three scales)")
@@ -114,11 +124,20 @@ def main(argv=None):
                                    max_detections=30, settings=settings,
                                    cache_dir=args.cache_dir / "contours")
     onboard = (time.perf_counter() - t) / len(objects)
-    dets, seconds = run(detector.detect, split, keys)
+    per_image = None
+    if args.per_image:
+        by_id = {o.obj_id: o for o in objects}
+
+        def per_image(ids):
+            return ShapeSearchDetector([by_id[i] for i in ids], depth_range=depth,
+                                       score_threshold=0.0, max_detections=30,
+                                       settings=settings, cache_dir=args.cache_dir / "contours")
+    dets, seconds = run(detector.detect, split, keys, per_image)
     scene = split.scene(keys[-1][0])
     stages = stage_seconds(detector, scene.image(keys[-1][1]), scene.cameras[keys[-1][1]].K)
     ap50, ap = box_ap(args.data, args.split, dets)
     result = {"data": str(args.data), "images": len(keys), "parts": len(objects),
+              "per_image": args.per_image,
               "depth_range": depth,
               "settings": {k: v for k, v in dataclasses.asdict(settings).items()
                            if k != "contour"},
@@ -128,7 +147,7 @@ def main(argv=None):
     print(f"templates: onboarding {onboard:.1f} s/part, cold {seconds[0]:.1f} s, warm "
           f"{result['templates']['warm_s']:.2f} s/image ({len(objects)} parts), box AP50 "
           f"{ap50:.3f}, AP {ap:.3f}; stages {json.dumps({k: round(v, 2) for k, v in stages.items()})}")
-    if not args.no_3pt:
+    if not (args.no_3pt or args.per_image):
         models = infer.load(cache_dir=args.cache_dir)
         onboarded = models.onboard(meshes)
         d3 = models.scene_detector(onboarded, depth_range=depth, score_threshold=0.0,

@@ -1,7 +1,7 @@
 """The public inference API: load the models once, then ``run_scene`` on any number of scenes.
 
     import infer
-    models = infer.load()  # the shipped models; or infer.load("runs/demo/train", refiner=...)
+    models = infer.load()  # templates detector + default refiner; or infer.load("runs/demo/train", refiner=...)
     objects = models.onboard({1: "bracket.ply"}, units="mm")  # cached on disk per mesh
     for image, K in camera_stream:
         instances = infer.run_scene([image], [K], objects, models)
@@ -151,45 +151,48 @@ class Models:
 
 def load(workdir=None, step: int | str = "best", *, refiner=None,
          refiner_step: int | str = "best", cache_dir=DEFAULT_CACHE,
-         num_templates: int = ONBOARD_TEMPLATES, detector: str = "3pt") -> Models:
-    """Load a detector training run or exported model (``step``: ``"best"``, ``"latest"`` or a
-    number) with an onboarder whose cache lives under ``cache_dir/onboarding`` (None: no disk
-    cache), and/or a refiner run (``refiner``, ``refiner_step``; ``"contour"``: the
-    training-free contour refiner, :mod:`infer.contour_refine`, its contours cached under
-    ``cache_dir/contours``). With neither, the models
-    that ship in ``models/`` (:mod:`infer.shipped`): the detector and the default refiner
-    (:func:`infer.shipped.default_refiner`: the shipped 3PT-R when one ships, else the contour
-    refiner); a missing or damaged file of theirs raises an error naming it and how to restore
-    it.
+         num_templates: int = ONBOARD_TEMPLATES, detector: str | None = None) -> Models:
+    """The models inference runs: a detector and a refiner.
 
-    ``detector="templates"``: the training-free detector
-    (:class:`infer.shape_detect.ShapeSearchDetector`, no network; ``workdir`` must be None)
-    and the default refiner unless ``refiner`` names another (drop it with
-    ``dataclasses.replace(models, refiner=None)``)."""
+    ``detector``: ``"templates"``, the training-free detector
+    (:class:`infer.shape_detect.ShapeSearchDetector`: no network, the parts found from their
+    CAD models alone; the default, since it finds parts on held-out cell scenes where the
+    shipped 3PT-D does not: docs/benchmarks.md, "Training-free detection"), or ``"3pt"``, a
+    3PT-D network: the detector training run or exported model ``workdir`` (``step``:
+    ``"best"``, ``"latest"`` or a number; a ``workdir`` implies ``"3pt"``), else the shipped
+    one (``models/``, :mod:`infer.shipped`), with an onboarder whose cache lives under
+    ``cache_dir/onboarding`` (None: no disk cache).
+
+    ``refiner``: a 3PT-R training run (``refiner_step``), ``"contour"`` (the training-free
+    contour refiner, :mod:`infer.contour_refine`, its contours cached under
+    ``cache_dir/contours``), or None: with no ``workdir`` the default refiner
+    (:func:`infer.shipped.default_refiner`: the shipped 3PT-R when one ships, else the contour
+    refiner); with a ``workdir``, none. A missing or damaged shipped file raises an error
+    naming it and how to restore it. Drop a refiner with ``dataclasses.replace(models,
+    refiner=None)``."""
+    if detector is None:
+        detector = "3pt" if workdir is not None else "templates"
     if detector not in DETECTORS:
         raise ValueError(f"detector must be one of {', '.join(DETECTORS)}, got {detector!r}")
+    if detector == "templates" and workdir is not None:
+        raise ValueError("a detector run (workdir) is 3PT-D: pass detector='3pt', or drop "
+                         "workdir for the training-free templates detector")
+    if workdir is None:
+        refiner = refiner or default_refiner()
+        if detector == "3pt":
+            workdir = shipped("detector")
+    cache = None if cache_dir is None else pathlib.Path(cache_dir)
+    models = Models(None, None, None, None, cache_dir=cache)
     if detector == "templates":
-        if workdir is not None:
-            raise ValueError("a detector run (workdir) is 3PT-D: pass detector='3pt', or drop "
-                             "workdir for the training-free templates detector")
-        models = load(None, refiner=refiner or default_refiner(), refiner_step=refiner_step,
-                      cache_dir=cache_dir)
-        return dataclasses.replace(models, shape_search=ShapeSearchSettings(),
-                                   cache_dir=None if cache_dir is None else
-                                   pathlib.Path(cache_dir))
-    if workdir is None and refiner is None:
-        workdir, refiner = shipped("detector"), default_refiner()
-    models = Models(None, None, None, None)
-    if workdir is not None:
+        models.shape_search = ShapeSearchSettings()
+    else:
         model, cfg, step = load_detector(workdir, step)
         model_id = f"{pathlib.Path(workdir).resolve()}@{step}"
-        cache = None if cache_dir is None else pathlib.Path(cache_dir) / "onboarding"
-        models = Models(model, cfg, step, Onboarder(model, cfg, model_id, cache_dir=cache,
-                                                    num_templates=num_templates))
+        models = Models(model, cfg, step, Onboarder(
+            model, cfg, model_id, cache_dir=None if cache is None else cache / "onboarding",
+            num_templates=num_templates), cache_dir=cache)
     if str(refiner) == CONTOUR:
-        models = dataclasses.replace(models, refiner=ContourSettings(),
-                                     cache_dir=None if cache_dir is None else
-                                     pathlib.Path(cache_dir))
+        models.refiner = ContourSettings()
     elif refiner is not None:
         net, rcfg, rstep, settings = load_refiner(refiner, refiner_step)
         models = dataclasses.replace(models, refiner=net, refiner_config=rcfg,
@@ -251,7 +254,8 @@ def run_scene(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarra
                          "method use infer.refine")
     if models.shape_search is not None and len(images) > 1:
         raise ValueError("the templates detector is single-view for now: run it per view, or "
-                         "use 3PT-D (detector='3pt') for a rig's fused detections")
+                         "use 3PT-D for a rig's fused detections (infer.load(detector='3pt'), "
+                         "--detector 3pt)")
     detector = models.scene_detector(objects, **detector_options)
     refining = refine and models.refiner is not None
     renderer = models.pose_renderer(objects) if with_masks and not refining else None

@@ -78,11 +78,12 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
                    help="a detector training run (train/launch.py --workdir) or exported model; "
                         f"default: {describe('detector')}"
                         + ("" if workdir_when is None else f"; used {workdir_when}"))
-    p.add_argument("--detector", choices=DETECTORS, default="3pt",
-                   help="3pt: the 3PT-D network (--workdir, default the shipped one); "
-                        "templates: no network, the parts found from their CAD models alone "
+    p.add_argument("--detector", choices=DETECTORS, default=None,
+                   help="templates: no network, the parts found from their CAD models alone "
                         "(selective-search proposals, contour templates fitted to each, the best "
-                        "poses verified by the contour refiner; one view)")
+                        "poses verified by the contour refiner; one view); 3pt: the 3PT-D "
+                        "network of --workdir, default the shipped one (needed for a rig's "
+                        "views). Default: 3pt with --workdir, else templates")
     p.add_argument("--step", type=checkpoint_step, default="best",
                    help="checkpoint: best, latest or a step number")
     p.add_argument("--num-templates", type=int_at_least(1), default=ONBOARD_TEMPLATES,
@@ -137,29 +138,29 @@ def camera_options(p: argparse.ArgumentParser, per: str) -> None:
 
 def load_models(args, detector: bool = True):
     """The command's models (``infer.load``), with the onboarding and compilation caches: the
-    detector of ``--workdir`` (when ``detector``; default the shipped one) and, when the command
-    has the option, the refiner of ``--refiner`` (default :func:`infer.shipped.default_refiner`:
-    the shipped 3PT-R when one ships, else the contour refiner; ``none``: no refiner)."""
+    detector of ``--detector`` (when ``detector``): the training-free templates detector by
+    default, 3PT-D with ``--detector 3pt`` or ``--workdir`` (default the shipped network); and,
+    when the command has the option, the refiner of ``--refiner`` (default
+    :func:`infer.shipped.default_refiner`: the shipped 3PT-R when one ships, else the contour
+    refiner; ``none``: no refiner)."""
     import jax
 
     jax.config.update("jax_compilation_cache_dir", str(args.cache_dir / "jax"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
     refining = hasattr(args, "refiner") and str(args.refiner) != "none"
     refiner = (args.refiner or default_refiner()) if refining else None
-    if detector and args.detector == "templates":
-        if args.workdir is not None:
-            raise ValueError("--workdir is a 3PT-D run; --detector templates needs no network: "
-                             "drop one of them")
-        models = load(refiner=refiner, refiner_step=getattr(args, "refiner_step", "best"),
-                      cache_dir=args.cache_dir, detector="templates")
-        return models if refining else dataclasses.replace(models, refiner=None)
-    workdir = (args.workdir or shipped("detector")) if detector else None
-    if workdir is None and refiner is None:
+    kind = args.detector or ("3pt" if args.workdir is not None else "templates")
+    if kind == "templates" and args.workdir is not None:
+        raise ValueError("--workdir is a 3PT-D run; --detector templates needs no network: "
+                         "drop one of them")
+    if not detector and refiner is None:
         raise ValueError("no model to load: --refiner none leaves this command nothing to run; "
                          "drop it (the default refiner) or pass --refiner contour|RUN")
-    return load(workdir, args.step, refiner=refiner,
-                refiner_step=getattr(args, "refiner_step", "best"), cache_dir=args.cache_dir,
-                num_templates=args.num_templates)
+    workdir = (args.workdir or shipped("detector")) if detector and kind == "3pt" else None
+    models = load(workdir, args.step, refiner=refiner,
+                  refiner_step=getattr(args, "refiner_step", "best"), cache_dir=args.cache_dir,
+                  num_templates=args.num_templates, detector=kind if detector else None)
+    return models if refining else dataclasses.replace(models, refiner=None)
 
 
 def detector_options(args) -> dict:

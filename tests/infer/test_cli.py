@@ -216,7 +216,7 @@ def test_depth_range_reaches_the_detector_and_bad_ones_exit_2(files, capsys, mon
     monkeypatch.setattr(cli, "load_models", lambda args: FakeModels())
     monkeypatch.setattr(cli, "run_scene", fake_run_scene)
     main(_images_argv(files, "--K", "60,60,31.5,23.5", "--depth-range", "400", "900"))
-    assert seen["depth_range"] == [400.0, 900.0] and seen["num_scales"] is None
+    assert seen["depth_range"] == [400.0, 900.0] and "num_scales" not in seen
     argv = _images_argv(files, "--K", "60,60,31.5,23.5", "--depth-range")
     fails_naming(capsys, argv + ["0", "500"], "argument --depth-range: must be a finite number > 0")
     fails_naming(capsys, argv + ["900", "400"], "argument --depth-range: ZMIN must be <= ZMAX")

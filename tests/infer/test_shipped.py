@@ -45,9 +45,14 @@ def test_exported_model_matches_sha256sum_and_loads_by_default(models_dir, tmp_p
                            capture_output=True, text=True)
     assert check.returncode == 0, check.stdout + check.stderr
     assert not list(folder.rglob("opt_state")) and not list(folder.rglob("data"))
-    models = infer.load(cache_dir=None)
+    # By default no network detects: the training-free templates detector, which measures
+    # better on held-out cells; detector="3pt" loads the shipped 3PT-D.
+    default = infer.load(cache_dir=None)
+    assert default.detector is None and default.shape_search is not None
+    models = infer.load(cache_dir=None, detector="3pt")
     # No 3PT-R ships: the training-free contour refiner is the default.
     assert isinstance(models.refiner, ContourSettings)
+    assert isinstance(default.refiner, ContourSettings)
     original, _, _ = load_detector(tmp_path / "run")
     for a, b in zip(_params(models.detector), _params(original), strict=True):
         np.testing.assert_array_equal(a, b)
@@ -63,11 +68,11 @@ def test_damaged_missing_or_foreign_files_name_the_file_and_git_checkout(models_
     data[len(data) // 2] ^= 0xFF
     biggest.write_bytes(bytes(data))
     with pytest.raises(ModelFileError, match="differs from its SHA-256") as e:
-        infer.load(cache_dir=None)
+        infer.load(cache_dir=None, detector="3pt")
     assert str(biggest) in str(e.value) and restore in str(e.value)
     data[len(data) // 2] ^= 0xFF
     biggest.write_bytes(bytes(data))
-    infer.load(cache_dir=None)
+    infer.load(cache_dir=None, detector="3pt")
 
     stray = folder / "checkpoints" / "stray.bin"
     stray.write_bytes(b"x")
@@ -78,11 +83,11 @@ def test_damaged_missing_or_foreign_files_name_the_file_and_git_checkout(models_
 
     (folder / "detector.json").unlink()
     with pytest.raises(ModelFileError, match="the shipped detector is missing") as e:
-        infer.load(cache_dir=None)
+        infer.load(cache_dir=None, detector="3pt")
     assert str(folder / "detector.json") in str(e.value) and restore in str(e.value)
     shutil.rmtree(folder)
     with pytest.raises(ModelFileError, match=restore):
-        infer.load(cache_dir=None)
+        infer.load(cache_dir=None, detector="3pt")
 
 
 def test_cli_without_workdir_uses_the_shipped_detector_and_reports_damage(models_dir, tmp_path,
@@ -90,7 +95,8 @@ def test_cli_without_workdir_uses_the_shipped_detector_and_reports_damage(models
     ply = next(bop_models_dir.rglob("*.ply"))
     image = tmp_path / "a.png"
     cv2.imwrite(str(image), np.zeros((48, 64, 3), np.uint8))
-    argv = ["images", "--mesh", f"1={ply}", "--image", str(image), "--K", "60,60,31.5,23.5",
+    argv = ["images", "--detector", "3pt", "--mesh", f"1={ply}", "--image", str(image), "--K",
+            "60,60,31.5,23.5",
             "--out", str(tmp_path / "out"), "--cache-dir", str(tmp_path / "cache")]
     (models_dir / "detector-cpu" / "config.json").write_text("{}")
     fails_naming(capsys, argv, "config.json differs from its SHA-256")

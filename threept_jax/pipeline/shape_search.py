@@ -67,7 +67,7 @@ class ShapeSearchSettings:
     """
 
     num_views: int = 200
-    num_inplane: int = 24
+    num_inplane: int = 36
     num_points: int = 48
     max_proposals: int = 300
     proposal_scale: float = 0.5
@@ -75,7 +75,7 @@ class ShapeSearchSettings:
     per_proposal: int = 8
     proposal_nms: float = 0.5
     candidates: int = 300
-    spread: int = 2
+    spread: int = 1
     min_gradient: float = 30.0
     nms_iou: float = 0.5
     contour: ContourSettings = ContourSettings(scales=(0.04, 0.02, 0.01), iterations=2)
@@ -136,7 +136,7 @@ def stack_templates(per_object) -> ShapeTemplates:
                             for k in ("xy", "bins", "valid", "rotations")))
 
 
-def orientation_response(image: np.ndarray, spread: int = 2, min_gradient: float = 30.0
+def orientation_response(image: np.ndarray, spread: int = 1, min_gradient: float = 30.0
                          ) -> np.ndarray:
     """[NUM_BINS, H, W] float32 LINE-2D response maps of a uint8 RGB image: entry [k, y, x] is
     the best |cos| between orientation bin k and the quantised gradient orientations found
