@@ -21,7 +21,8 @@ dataset's parts, the cell's depth range from its ``cell.json``:
 This is the detector alone; the BOP 6D AP after refinement comes from ``python -m infer bop
 --detector templates --evaluate`` (docs/benchmarks.md).
 
-    python bench/shape_search.py [--data DIR] [--images 8] [--candidates 600] [--out F.json]
+    python bench/shape_search.py [--data DIR] [--images 8] [--per-image] [--no-depth-range]
+        [--by-parts] [--candidates 300] [--out F.json]
 """
 
 from __future__ import annotations
@@ -87,6 +88,23 @@ def stage_seconds(detector, image, K):
     return {"proposals": t1 - t, "response": t2 - t1, "total": t3 - t2, "num_proposals": len(boxes)}
 
 
+def seconds_by_parts(objects, split, keys, depth, settings, cache, counts=(1, 5, 10, 20)):
+    """Warm seconds per image (median over ``keys``, after one call that compiles) with the
+    first N parts of the dataset queried, for each N in ``counts`` (as many as there are)."""
+    out = {}
+    for n in counts:
+        if n > len(objects):
+            break
+        detector = ShapeSearchDetector(objects[:n], depth_range=depth, score_threshold=0.0,
+                                       max_detections=30, settings=settings, cache_dir=cache)
+        scene = split.scene(keys[0][0])
+        detector.detect(scene.image(keys[0][1]), scene.cameras[keys[0][1]].K)
+        _, seconds = run(detector.detect, split, keys)
+        out[n] = float(np.median(seconds))
+        print(f"  {n} parts queried: {out[n]:.2f} s per image (warm)")
+    return out
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--data", type=pathlib.Path, default=ROOT / "runs/demo/zero_shot/data/test")
@@ -102,6 +120,8 @@ def main(argv=None):
                    help="ignore the cell's depth range (a user without a cell: templates from "
                         "32 px to the image size, 3PT-D's pan-and-scan over three scales)")
     p.add_argument("--cache-dir", type=pathlib.Path, default=DEFAULT_CACHE)
+    p.add_argument("--by-parts", action="store_true",
+                   help="also time 1, 5, 10 and 20 parts queried (the first N of the dataset)")
     p.add_argument("--out", type=pathlib.Path, default=None)
     args = p.parse_args(argv)
     if not args.data.exists():
@@ -147,6 +167,9 @@ def main(argv=None):
     print(f"templates: onboarding {onboard:.1f} s/part, cold {seconds[0]:.1f} s, warm "
           f"{result['templates']['warm_s']:.2f} s/image ({len(objects)} parts), box AP50 "
           f"{ap50:.3f}, AP {ap:.3f}; stages {json.dumps({k: round(v, 2) for k, v in stages.items()})}")
+    if args.by_parts:
+        result["templates"]["warm_s_by_parts"] = seconds_by_parts(
+            objects, split, keys[:3], depth, settings, args.cache_dir / "contours")
     if not (args.no_3pt or args.per_image):
         models = infer.load(cache_dir=args.cache_dir)
         onboarded = models.onboard(meshes)

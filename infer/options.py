@@ -75,8 +75,9 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
     """The options every subcommand shares. ``workdir_when``: when the subcommand needs a
     detector only sometimes, the help's words for when."""
     p.add_argument("--workdir", type=pathlib.Path, default=None,
-                   help="a detector training run (train/launch.py --workdir) or exported model; "
-                        f"default: {describe('detector')}"
+                   help="a 3PT-D training run (train/launch.py --workdir) or exported model "
+                        f"(implies --detector 3pt); with --detector 3pt, default: "
+                        f"{describe('detector')}"
                         + ("" if workdir_when is None else f"; used {workdir_when}"))
     p.add_argument("--detector", choices=DETECTORS, default=None,
                    help="templates: no network, the parts found from their CAD models alone "

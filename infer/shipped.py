@@ -1,7 +1,9 @@
 """The models that ship in the repository (``models/``), loaded when no run is named.
 
-``infer.load()``, ``python -m infer bop|images|track`` without ``--workdir`` / ``--refiner``,
-``python -m train.adapt`` (unless ``--from scratch``) and the demo's zero-shot setting use them.
+``infer.load(detector="3pt")`` and ``python -m infer bop|images|track --detector 3pt`` without
+``--workdir`` (the shipped detector; the default detector is the training-free templates
+detector), the default refiner (``--refiner`` unset), ``python -m train.adapt`` (unless
+``--from scratch``) and the demo's zero-shot setting use them.
 Each is an exported run (``python -m train.export``) with its card, ``MODEL_CARD.md``, which
 says what it was trained on and what it reaches. They are verified against their
 ``SHA256SUMS`` before they are loaded: a missing or damaged file is named, with the command
