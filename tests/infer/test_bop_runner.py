@@ -237,16 +237,25 @@ def _by_image(rows):
 def test_load_models_passes_the_refiner_run(monkeypatch, tmp_path):
     from infer import cli, options
 
+    from infer.api import Models
+
     seen = {}
-    monkeypatch.setattr(options, "load", lambda *a, **k: seen.update(args=a, **k))
+
+    def fake_load(*a, **k):
+        seen.clear()
+        seen.update(args=a, **k)
+        return Models(None, None, None, None)
+
+    monkeypatch.setattr(options, "load", fake_load)
     args = cli.build_parser().parse_args(
         ["bop", "--workdir", "d", "--refiner", "r", "--refiner-step", "7", "--dataset-dir", "x",
          "--out", "o", "--cache-dir", str(tmp_path)])
     options.load_models(args)
     assert tuple(map(str, seen["args"])) == ("d", "best") and str(seen["refiner"]) == "r"
-    assert seen["refiner_step"] == 7
-    # Without --workdir / --refiner: the shipped detector, and the contour refiner while no
-    # 3PT-R ships; a shipped 3PT-R when one does; --refiner none: no refiner.
+    assert seen["refiner_step"] == 7 and seen["detector"] == "3pt"  # a run is 3PT-D
+    # Without --workdir / --refiner: the templates detector (no network), and the contour
+    # refiner while no 3PT-R ships; a shipped 3PT-R when one does; --refiner none: no refiner;
+    # --detector 3pt: the shipped detector.
     import infer.shipped
 
     shipped = {"detector": tmp_path / "models" / "d", "refiner": None}
@@ -254,11 +263,15 @@ def test_load_models_passes_the_refiner_run(monkeypatch, tmp_path):
     monkeypatch.setattr(infer.shipped, "shipped", shipped.get)
     bare = ["bop", "--dataset-dir", "x", "--out", "o"]
     options.load_models(cli.build_parser().parse_args(bare))
-    assert seen["args"] == (shipped["detector"], "best") and seen["refiner"] == "contour"
+    assert seen["args"] == (None, "best") and seen["detector"] == "templates"
+    assert seen["refiner"] == "contour"
+    options.load_models(cli.build_parser().parse_args(bare + ["--detector", "3pt"]))
+    assert seen["args"] == (shipped["detector"], "best") and seen["detector"] == "3pt"
     shipped["refiner"] = tmp_path / "models" / "r"
     options.load_models(cli.build_parser().parse_args(bare))
     assert seen["refiner"] == shipped["refiner"]
-    options.load_models(cli.build_parser().parse_args(bare + ["--refiner", "none"]))
+    assert options.load_models(cli.build_parser().parse_args(
+        bare + ["--refiner", "none"])).refiner is None
     assert seen["refiner"] is None
 
 
