@@ -236,7 +236,6 @@ def _by_image(rows):
 
 def test_load_models_passes_the_refiner_run(monkeypatch, tmp_path):
     from infer import cli, options
-
     from infer.api import Models
 
     seen = {}
