@@ -171,7 +171,7 @@ def main(argv=None):
         result["templates"]["warm_s_by_parts"] = seconds_by_parts(
             objects, split, keys[:3], depth, settings, args.cache_dir / "contours")
     if not (args.no_3pt or args.per_image):
-        models = infer.load(cache_dir=args.cache_dir)
+        models = infer.load(cache_dir=args.cache_dir, detector="3pt")
         onboarded = models.onboard(meshes)
         d3 = models.scene_detector(onboarded, depth_range=depth, score_threshold=0.0,
                                    max_detections=30)
