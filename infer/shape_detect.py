@@ -69,8 +69,11 @@ class ShapeSearchDetector:
         cache = None if cache_dir is None else pathlib.Path(cache_dir)
         contours = [_cached_contours(o.mesh, cache) for o in self.objects]
         self.model = stack_contours(contours)
-        self.templates = stack_templates([shape_templates(c, self.settings) for c in contours])
-        self._empty = ~self.templates.valid.any((1, 2))  # objects whose renders have no outline
+        templates = stack_templates([shape_templates(c, self.settings) for c in contours])
+        self._empty = ~templates.valid.any((1, 2))  # objects whose renders have no outline
+        self._rotations = templates.rotations.astype(np.float64)
+        # On the device once, not at every image.
+        self.templates = jax.tree.map(jnp.asarray, templates)
         self.centers = np.stack([c["center"] for c in contours])
         self.diameters = np.array([2.0 * float(c["radius"]) for c in contours])
 
@@ -112,7 +115,7 @@ class ShapeSearchDetector:
                 continue
             sc, ix, z, c = (a[keep].reshape(-1, *a.shape[2:]) for a in (score, idx, depth, uv))
             ok = sc > 0
-            poses = poses_from_fit(t.rotations[o][ix[ok]].astype(np.float64),
+            poses = poses_from_fit(self._rotations[o][ix[ok]],
                                    np.broadcast_to(self.centers[o], (ok.sum(), 3)),
                                    z[ok].astype(np.float64), c[ok].astype(np.float64), K)
             found += [(float(a), int(o), p) for a, p in zip(sc[ok], poses)]
