@@ -179,13 +179,9 @@ def bop_setup(tmp_path_factory):
 
     The refinement loop runs 1 iteration on 2 hypotheses (a third of the default loop's
     compile time): what is tested here is the runner around it, not the loop."""
-    import functools
-
     import infer
     from infer import api
-    from infer.refine import SceneRefiner
-    from tests.fixtures.run_dirs import tiny_detector_run, tiny_refiner_run
-    from threept_jax.pipeline.refine_loop import LoopSettings
+    from tests.fixtures.run_dirs import plumbing_scene_refiner, tiny_detector_run, tiny_refiner_run
 
     root = tmp_path_factory.mktemp("bop") / "ds"
     models = root / "models"
@@ -214,8 +210,7 @@ def bop_setup(tmp_path_factory):
     cache = tmp_path_factory.mktemp("cache")
     loaded = infer.load(detector, refiner=refiner, cache_dir=cache, num_templates=48)
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(api, "SceneRefiner", functools.partial(
-            SceneRefiner, loop=LoopSettings(iterations=1), num_hypotheses=2))
+        patch.setattr(api, "SceneRefiner", plumbing_scene_refiner())
         yield root, detector, refiner, loaded
 
 

@@ -15,8 +15,10 @@ import trimesh
 from flax import nnx
 
 import infer
+from infer import api
 from infer.refine import SceneRefiner, refine_objects
 from tests.fixtures.poses import pose_z
+from tests.fixtures.run_dirs import plumbing_scene_refiner
 from threept_jax.models.configs import get_refiner_config
 from threept_jax.models.refiner import Refiner
 from threept_jax.pipeline.refinement import RefineSettings
@@ -33,7 +35,8 @@ def _box_mesh(extents, name):
 @pytest.fixture(scope="module")
 def refiner_models(tmp_path_factory):
     """(refiner-only Models, meshes, Models with an untrained detector and the same refiner).
-    Every test refines 3 or 4 instances in one 96 x 128 view: one bin, one compiled loop."""
+    Every test refines 3 or 4 instances in one 96 x 128 view: one bin, one compiled loop, the
+    plumbing tests' short loop (``plumbing_scene_refiner``)."""
     from infer.onboarding import Onboarder
     from threept_jax.models.configs import DetectorConfig
     from threept_jax.models.detector import Detector
@@ -49,7 +52,9 @@ def refiner_models(tmp_path_factory):
     onboarder = Onboarder(det, dcfg, "untrained@0", cache_dir=tmp_path_factory.mktemp("ob"),
                           num_templates=48)
     both = dataclasses.replace(models, detector=det, config=dcfg, step=0, onboarder=onboarder)
-    return models, meshes, both
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(api, "SceneRefiner", plumbing_scene_refiner())
+        yield models, meshes, both
 
 
 def test_refine_keeps_order_and_initial_poses_and_does_not_retrace_within_a_bin(refiner_models):

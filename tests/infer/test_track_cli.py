@@ -7,7 +7,6 @@ Every run refines 3 or 4 instances in 64 x 96 frames: one instance bin, so one c
 refinement loop (shared by the module's runs) and one compiled detector serve the module.
 """
 
-import functools
 import json
 
 import cv2
@@ -19,12 +18,10 @@ import trimesh
 import infer
 from infer import api, track_cli
 from infer.cli import main
-from infer.refine import SceneRefiner
 from infer.scene import Instances
 from tests.fixtures.cli import fails_naming
 from tests.fixtures.poses import pose_z
-from tests.fixtures.run_dirs import tiny_detector_run, tiny_refiner_run
-from threept_jax.pipeline.refine_loop import LoopSettings
+from tests.fixtures.run_dirs import plumbing_scene_refiner, tiny_detector_run, tiny_refiner_run
 
 K = "90,90,47.5,31.5"  # fx,fy,cx,cy of the 64 x 96 frames
 HW = (64, 96)
@@ -54,8 +51,7 @@ def env(tmp_path_factory):
     # The loop runs 1 iteration on 2 hypotheses (a third of the default loop's compile time):
     # what is tested here is tracking around it, not the loop.
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(api, "SceneRefiner", functools.partial(
-            SceneRefiner, loop=LoopSettings(iterations=1), num_hypotheses=2))
+        patch.setattr(api, "SceneRefiner", plumbing_scene_refiner())
         yield {"root": root, "frames": frames, "init": init, "memo": {}}
     jax.config.update("jax_compilation_cache_dir", cache_dir)  # the CLI set it to ours
 

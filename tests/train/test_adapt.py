@@ -1,6 +1,5 @@
 """``python -m train.adapt``: the whole adaptation command at toy size, run twice (resume)."""
 
-import functools
 import json
 
 import cv2
@@ -8,10 +7,8 @@ import pytest
 
 from infer import api
 from infer.checkpoint import load_detector, load_refiner
-from infer.refine import SceneRefiner
-from tests.fixtures.run_dirs import tiny_detector_run
+from tests.fixtures.run_dirs import plumbing_scene_refiner, tiny_detector_run
 from threept_jax.data.run_dir import RunDir
-from threept_jax.pipeline.refine_loop import LoopSettings
 from train import adapt, stages
 
 
@@ -188,8 +185,7 @@ def test_measure_step_seconds_times_the_configs_trainer(monkeypatch):
 def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypatch):
     monkeypatch.setattr(adapt, "refiner_config", small_refiner)
     # The test stage's refinement at the BOP runner tests' size (its loop is tested elsewhere).
-    monkeypatch.setattr(api, "SceneRefiner", functools.partial(
-        SceneRefiner, loop=LoopSettings(iterations=1), num_hypotheses=2))
+    monkeypatch.setattr(api, "SceneRefiner", plumbing_scene_refiner())
     monkeypatch.setattr(adapt, "measure_step_seconds", lambda c: STEP_SECONDS[c.trainer])
     w = tmp_path / "w"
     argv = ["--meshes", "procedural:2", "--seed", "3", "--workdir", str(w), "--minutes", "0.15",
