@@ -356,11 +356,21 @@ def summary_lines(figs: dict) -> list[str]:
 
 
 def refiner_heldout(refiner: pathlib.Path) -> dict:
-    """The refiner's held-out figures (:func:`train.eval_refiner.evaluate_run` of its best
-    checkpoint on its val records: the same parts in other scenes), ``eval/`` dropped."""
+    """The refiner's held-out figures: its best checkpoint on its val records (the same parts
+    in other scenes), ``eval/`` dropped. Training evaluated that checkpoint with
+    :class:`train.eval_refiner.RefinerEvaluator` and saved the figures with it (``train_to``
+    evaluates ``NUM_EVALS`` times); they are read back, not computed again (which would compile
+    the evaluation a second time). A best checkpoint saved without them (a run stopped between
+    evaluations) is evaluated now (:func:`train.eval_refiner.evaluate_run`)."""
+    from threept_jax.data.run_dir import RunDir
     from train.eval_refiner import evaluate_run
 
-    return {k.removeprefix("eval/"): v for k, v in evaluate_run(refiner).items()}
+    run = RunDir(refiner, model="refiner")
+    step = run.best_step()
+    saved = run.saved_metrics(step)
+    figures = {**saved, "step": step} if "eval/ar_mssd_after" in saved else \
+        evaluate_run(refiner, step=step)
+    return {k.removeprefix("eval/"): v for k, v in figures.items() if k != "eval/time_s"}
 
 
 def refiner_helps(h: dict) -> bool:
