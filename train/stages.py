@@ -4,6 +4,7 @@ their times, and progress bars that stay readable in a log file."""
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 import tempfile
@@ -15,6 +16,16 @@ EVAL_SHARE = 0.15
 TIMED_STEPS = 8
 #: The configs of train/configs/detector.py and refiner.py.
 CONFIGS = ("tiny", "cpu", "small", "paper")
+
+
+@functools.cache
+def _step_cache():
+    """This process's compiled train steps (``train.trainer.StepCache``): a later run of the
+    same model and config in one process (``campaign.main`` or ``adapt.main`` called again
+    from Python, a notebook, the tests) reuses the compiled step and initialisation."""
+    from train.trainer import StepCache
+
+    return StepCache(maxsize=2)
 
 
 def log_friendly_progress() -> None:
@@ -77,5 +88,5 @@ def train_to(config, steps: int, workdir, *, evals: int, checkpoint_every: int |
     config.eval.every_steps = max(steps // evals, 1)
     config.checkpoint.every_steps = max(1, min(steps, checkpoint_every or steps // evals))
     config.log_every = max(1, min(log_every or steps // 20, config.checkpoint.every_steps))
-    return trainer_class(config)(config, workdir).run()
+    return trainer_class(config)(config, workdir, step_cache=_step_cache()).run()
 
