@@ -24,7 +24,7 @@ from fixtures.refiner_records import write_refiner_records
 from train import trainer_refiner as trr
 from train.configs import refiner as refiner_configs
 
-STEPS = 150
+STEPS = 100
 MARGIN = 0.10
 
 
