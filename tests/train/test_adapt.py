@@ -263,3 +263,22 @@ def test_only_a_refiner_that_raises_held_out_recall_is_used():
     assert not adapt.refiner_helps({"ar_mssd_before": 0.49, "ar_mssd_after": 0.49})
     assert adapt.refiner_helps({"ar_mssd_before": 0.30, "ar_mssd_after": 0.52})
     assert not adapt.refiner_helps({"ar_mssd_before": 0.49, "ar_mssd_after": 0.305})
+
+
+def test_held_out_figures_of_a_run_saved_without_them_are_evaluated(tmp_path, monkeypatch):
+    """A best checkpoint without the evaluation training saves with it (a run stopped between
+    evaluations; here an untrained run written by hand) is evaluated then, at that step; the
+    figures come back without the ``eval/`` prefix."""
+    import train.eval_refiner
+    from tests.fixtures.run_dirs import tiny_refiner_run
+
+    run = tiny_refiner_run(tmp_path / "refiner")
+    calls = []
+
+    def evaluate_run(workdir, step="best"):
+        calls.append((workdir, step))
+        return {"eval/ar_mssd_after": 0.5, "eval/ar_mssd_before": 0.4, "step": step}
+
+    monkeypatch.setattr(train.eval_refiner, "evaluate_run", evaluate_run)
+    assert adapt.refiner_heldout(run) == {"ar_mssd_after": 0.5, "ar_mssd_before": 0.4, "step": 0}
+    assert calls == [(run, 0)]
