@@ -34,15 +34,15 @@ def bop_models_dir():
 #: (``make test`` groups each module on one worker, ``--dist loadscope``, so a module's compiled
 #: fixtures are built once).
 SLOW_FIRST = (  # by their measured test time, longest first (docs/testing.md)
-    "tests/train/test_adapt.py", "tests/pipeline/test_refine_ladder.py",
-    "tests/pipeline/test_refine_loop.py", "tests/train/test_refiner_trainer.py",
-    "tests/train/test_detector_trainer.py", "tests/train/test_refiner_learning.py",
-    "tests/train/test_learning.py", "tests/train/test_campaign.py",
-    "tests/train/test_cluster.py", "tests/infer/test_refine_api.py",
-    "tests/pipeline/test_refinement.py", "tests/train/test_resume.py",
-    "tests/infer/test_track_cli.py", "tests/pipeline/test_contour.py",
-    "tests/infer/test_bop_runner.py", "tests/datagen/test_mesh_kinds.py",
-    "tests/infer/test_shipped_guard.py",
+    "tests/train/test_adapt.py", "tests/train/test_refiner_trainer.py",
+    "tests/pipeline/test_refine_ladder.py", "tests/train/test_detector_trainer.py",
+    "tests/pipeline/test_refine_loop.py", "tests/train/test_cluster.py",
+    "tests/train/test_campaign.py", "tests/train/test_refiner_learning.py",
+    "tests/train/test_learning.py", "tests/pipeline/test_contour.py",
+    "tests/pipeline/test_refinement.py", "tests/infer/test_bop_runner.py",
+    "tests/pipeline/test_shape_search.py", "tests/infer/test_shipped_guard.py",
+    "tests/datagen/test_mesh_kinds.py", "tests/infer/test_track_cli.py",
+    "tests/infer/test_refine_api.py", "tests/train/test_resume.py",
 )
 
 
