@@ -356,12 +356,13 @@ def test_init_from_starts_a_fresh_run_with_the_source_runs_best_parameters(toy, 
     """``init_from``: step 0 of the new run holds exactly the parameters the source run had at
     its best checkpoint (scripted here: the last one), the optimizer starts fresh, and a run of
     another model is refused naming the fix."""
-    source = small_config(toy, **{"total_steps": 2, "checkpoint.every_steps": 2})
+    # The module's config (3 steps): its compiled step is the one the first test built.
+    source = small_config(toy, **{"checkpoint.every_steps": 3})
     trainer = td.DetectorTrainer(source, tmp_path / "source", devices=jax.devices()[:1],
                                  step_cache=STEPS)
     trainer.run()
     trained = _params_np(trainer)
-    assert RunDir(tmp_path / "source").best_step() == 2
+    assert RunDir(tmp_path / "source").best_step() == 3
     fresh = small_config(toy, init_from=str(tmp_path / "source"), seed=5)
     tuned = td.DetectorTrainer(fresh, tmp_path / "tuned", devices=jax.devices()[:1],
                                step_cache=STEPS)
