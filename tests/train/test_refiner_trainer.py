@@ -143,7 +143,8 @@ def test_launcher_trains_the_refiner_and_refuses_a_detector_key(records, tmp_pat
     small = ["--config.data_dir=" + str(seen), "--config.total_steps=1",
              "--config.batch_size=2", "--config.mesh.data=1", "--config.data.num_hypotheses=2",
              "--config.refine.max_faces=256", "--config.refine.num_matches=16",
-             "--config.eval.every_steps=0", "--config.checkpoint.async_save=False",
+             "--config.eval.every_steps=0", "--config.eval.num_steps=1",
+             "--config.checkpoint.async_save=False",
              "--config.progress_bar=False"]
     proc = subprocess.run(base + ["--workdir", str(tmp_path / "w")] + small, env=SUBPROCESS_ENV,
                           capture_output=True, text=True, timeout=600)
