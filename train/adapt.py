@@ -368,9 +368,9 @@ def refiner_heldout(refiner: pathlib.Path) -> dict:
     run = RunDir(refiner, model="refiner")
     step = run.best_step()
     saved = run.saved_metrics(step)
-    figures = {**saved, "step": step} if "eval/ar_mssd_after" in saved else \
+    held = {**saved, "step": step} if "eval/ar_mssd_after" in saved else \
         evaluate_run(refiner, step=step)
-    return {k.removeprefix("eval/"): v for k, v in figures.items() if k != "eval/time_s"}
+    return {k.removeprefix("eval/"): v for k, v in held.items() if k != "eval/time_s"}
 
 
 def refiner_helps(h: dict) -> bool:
