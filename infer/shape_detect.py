@@ -31,9 +31,11 @@ from threept_jax.pipeline.contour import stack_contours
 from threept_jax.pipeline.shape_search import (
     ShapeSearchSettings,
     fit_templates,
+    nms_per_part,
     orientation_response,
     poses_from_fit,
     proposals,
+    select_candidates,
     shape_templates,
     stack_templates,
     verify,
@@ -121,8 +123,9 @@ class ShapeSearchDetector:
             found += [(float(a), int(o), p) for a, p in zip(sc[ok], poses)]
         if not found:
             return Detections()
-        found.sort(key=lambda x: -x[0])
-        found = found[:s.candidates]
+        found = [found[i] for i in select_candidates(
+            np.array([a for a, _, _ in found]), np.array([o for _, o, _ in found]),
+            s.candidates)]
         n = len(found)
         poses = np.stack([p for _, _, p in found] + [found[0][2]] * (s.candidates - n))
         obj = np.array([o for _, o, _ in found] + [found[0][1]] * (s.candidates - n), np.int32)
@@ -132,15 +135,9 @@ class ShapeSearchDetector:
             lines=s.lines))
         refined, scores, xyxy, obj = refined[:n], scores[:n], xyxy[:n], obj[:n]
         finite = np.isfinite(scores) & np.isfinite(xyxy).all(1)
-        order = [i for i in np.argsort(-np.where(finite, scores, -np.inf)) if finite[i]]
-        xywh = [[float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])]
-                for b in xyxy]
-        keep = np.asarray(cv2.dnn.NMSBoxes([xywh[i] for i in order],
-                                           [float(scores[i]) for i in order],
-                                           self.score_threshold, s.nms_iou), int).ravel()
+        keep = nms_per_part(xyxy, scores, obj, s.nms_iou, self.score_threshold)
         dets = Detections(best_score=float(np.max(scores[finite])) if finite.any() else -np.inf)
-        for j in keep[:self.max_detections]:
-            i = order[j]
+        for i in keep[:self.max_detections]:
             o = self.objects[obj[i]]
             dets.append(Detection(o.obj_id, xyxy[i].astype(np.float32), float(scores[i]),
                                   refined[i][None].astype(np.float32),
