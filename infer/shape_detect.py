@@ -31,7 +31,6 @@ from threept_jax.pipeline.contour import stack_contours
 from threept_jax.pipeline.shape_search import (
     ShapeSearchSettings,
     fit_templates,
-    nms_per_part,
     orientation_response,
     poses_from_fit,
     proposals,
@@ -135,7 +134,13 @@ class ShapeSearchDetector:
             lines=s.lines))
         refined, scores, xyxy, obj = refined[:n], scores[:n], xyxy[:n], obj[:n]
         finite = np.isfinite(scores) & np.isfinite(xyxy).all(1)
-        keep = nms_per_part(xyxy, scores, obj, s.nms_iou, self.score_threshold)
+        order = [i for i in np.argsort(-np.where(finite, scores, -np.inf)) if finite[i]]
+        xywh = [[float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])]
+                for b in xyxy]
+        keep = np.asarray(cv2.dnn.NMSBoxes([xywh[i] for i in order],
+                                           [float(scores[i]) for i in order],
+                                           self.score_threshold, s.nms_iou), int).ravel()
+        keep = [order[j] for j in keep]
         dets = Detections(best_score=float(np.max(scores[finite])) if finite.any() else -np.inf)
         for i in keep[:self.max_detections]:
             o = self.objects[obj[i]]

@@ -172,37 +172,6 @@ def test_each_part_gets_its_share_of_the_verified_candidates():
     assert S.select_candidates(np.zeros(0), np.zeros(0, int), 5).tolist() == []
 
 
-def test_nms_within_each_part_matches_a_greedy_loop():
-    """nms_per_part against greedy NMS per part in float64 (IoU of pixel-edge boxes): an
-    overlap suppresses only within a part; scores at or below the threshold and non-finite
-    ones are dropped."""
-    rng = np.random.default_rng(1)
-    xy = rng.uniform(0, 60, (40, 2))
-    xyxy = np.concatenate([xy, xy + rng.uniform(10, 40, (40, 2))], 1)
-    scores = rng.uniform(0, 1, 40)
-    scores[3] = np.nan
-    parts = rng.integers(0, 3, 40)
-
-    def iou(a, b):
-        w = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-        h = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-        return w * h / ((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - w * h)
-
-    for threshold, overlap in ((0.2, 0.5), (0.0, 0.3)):
-        want = []
-        for i in sorted(range(40), key=lambda i: -np.nan_to_num(scores[i], nan=-1)):
-            if not scores[i] > threshold:
-                continue
-            if all(parts[j] != parts[i] or iou(xyxy[i], xyxy[j]) <= overlap for j in want):
-                want.append(i)
-        got = S.nms_per_part(xyxy, scores, parts, overlap, threshold)
-        assert got.tolist() == want
-        assert len({parts[i] for i in want}) == 3
-        crossed = [(i, j) for i in want for j in want if parts[i] != parts[j] and
-                   iou(xyxy[i], xyxy[j]) > overlap]
-        assert crossed  # parts are not suppressed by one another
-
-
 def test_fit_finds_the_template_depth_and_centre_of_a_rendered_box():
     mesh = _box_mesh()
     contours = C.mesh_contours(mesh, num_views=100, num_points=200)

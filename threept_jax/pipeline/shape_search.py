@@ -20,7 +20,7 @@ every learned detector must beat). Three stages per image:
    part (:func:`select_candidates`), are refined by the contour refiner
    (:func:`threept_jax.pipeline.contour.refine_poses`) and scored by its contour score (the
    posterior mass of the outline on the image's region boundary, in [0, 1]); the refined
-   poses' boxes are merged by NMS within each part.
+   poses' boxes are merged by NMS across parts (one part per place).
 
 Shapes: O objects, R templates per object (views x in-plane turns), n outline points per
 template, B proposals, k templates kept per proposal.
@@ -63,8 +63,8 @@ class ShapeSearchSettings:
       (:func:`select_candidates`).
     spread: half-width (px) of the orientation spreading; min_gradient: weakest gradient (Sobel
       magnitude of the strongest colour channel, 0-255 images) that counts as an edge.
-    nms_iou: IoU of the final NMS, within each part (a standard detector's class-wise NMS:
-      two parts may be reported at one place; the score says which is likelier).
+    nms_iou: IoU of the final NMS across parts (one part per place: the scene's refinement
+      and masks treat every detection as its own object).
     contour: the refinement and score of stage 3; lines: its correspondence lines per pose
       (every ``n``-th point of the contour model's outlines, evenly spread).
     """
@@ -235,22 +235,6 @@ def select_candidates(scores: np.ndarray, parts: np.ndarray, n: int) -> np.ndarr
     rest = order[rank[order] >= each][:max(n - len(share), 0)]
     chosen = np.concatenate([share, rest])
     return chosen[np.argsort(-scores[chosen], kind="stable")]
-
-
-def nms_per_part(xyxy: np.ndarray, scores: np.ndarray, parts: np.ndarray, iou: float,
-                 threshold: float) -> np.ndarray:
-    """Indices of the detections kept by greedy NMS within each part (boxes [P, 4] xyxy,
-    ``scores`` [P], ``parts`` [P]; scores at or below ``threshold`` and non-finite ones
-    dropped), best score first (OpenCV's ``NMSBoxesBatched``)."""
-    xyxy, scores = np.asarray(xyxy, np.float64), np.asarray(scores, np.float64)
-    ok = np.flatnonzero(np.isfinite(scores) & np.isfinite(xyxy).all(1))
-    if not len(ok):
-        return ok
-    xywh = np.concatenate([xyxy[ok, :2], xyxy[ok, 2:] - xyxy[ok, :2]], 1)
-    keep = ok[np.asarray(cv2.dnn.NMSBoxesBatched(
-        xywh.tolist(), scores[ok].tolist(), np.asarray(parts)[ok].astype(int).tolist(),
-        float(threshold), float(iou)), int).ravel()]
-    return keep[np.argsort(-scores[keep], kind="stable")]
 
 
 def poses_from_fit(rotations: np.ndarray, center: np.ndarray, depth: np.ndarray,
