@@ -24,6 +24,7 @@ from infer.options import (
     camera_options,
     cameras_from_args,
     common_options,
+    default_score_threshold,
     detector_options,
     fraction,
     int_at_least,
@@ -128,6 +129,7 @@ def run_images(args) -> list:
 def main(argv: Sequence[str] | None = None):
     parser = build_parser()
     args = parser.parse_args(argv)
+    default_score_threshold(args)
     if args.depth_range is not None and args.depth_range[0] > args.depth_range[1]:
         parser.error(f"argument --depth-range: ZMIN must be <= ZMAX, got {args.depth_range[0]:g} "
                      f"{args.depth_range[1]:g}")

@@ -72,6 +72,10 @@ class Detections(list):
         self.best_score = float(best_score)
 
 
+#: Default detection probability (3PT-D's presence score) a detection must exceed.
+SCORE_THRESHOLD = 0.1
+
+
 class SceneDetector:
     """Detects onboarded objects in images (module docstring); the detection itself is
     :class:`threept_jax.pipeline.detection.FullImageDetector`, the path training evaluates."""
@@ -79,7 +83,8 @@ class SceneDetector:
     def __init__(self, model: Detector, config: DetectorConfig, objects: Sequence[OnboardedObject],
                  *, num_scales: int | None = None, scales: Sequence[float] | None = None,
                  depth_range: tuple[float, float] | None = None,
-                 score_threshold: float = 0.1, nms_iou: float = 0.5, max_detections: int = 100,
+                 score_threshold: float = SCORE_THRESHOLD, nms_iou: float = 0.5,
+                 max_detections: int = 100,
                  candidates_per_object: int = 256, num_hypotheses: int = 8,
                  min_angle_deg: float = 45.0):
         if not objects:

@@ -18,6 +18,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
+from infer import detect, shape_detect
 from infer.api import DEFAULT_CACHE, DETECTORS, Camera, load
 from infer.onboarding import ONBOARD_TEMPLATES
 from infer.shipped import default_refiner, describe, shipped
@@ -101,8 +102,10 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
     p.add_argument("--num-scales", type=int_at_least(1), default=None,
                    help="pan-and-scan scales (default: the fewest that cover the object sizes: "
                         "3 for a 640x480 image without --depth-range)")
-    p.add_argument("--score-threshold", type=fraction, default=0.1,
-                   help="keep detections scoring above this, in [0, 1]")
+    p.add_argument("--score-threshold", type=fraction, default=None,
+                   help="keep detections scoring above this, in [0, 1] (default: 0.4 with the "
+                        "templates detector, whose contour score of a noisy featureless image "
+                        "is 0.2-0.35; 0.1 with 3PT-D)")
     p.add_argument("--max-detections", type=int_at_least(1), default=100, help="per image")
     p.add_argument("--cache-dir", type=pathlib.Path, default=DEFAULT_CACHE,
                    help="onboarding and compilation cache (env THREEPT_CACHE)")
@@ -137,6 +140,19 @@ def camera_options(p: argparse.ArgumentParser, per: str) -> None:
                         "cx' = (cx + 0.5) * sx - 0.5)")
 
 
+def detector_kind(args) -> str:
+    """``templates`` or ``3pt``: ``--detector``, else 3PT-D when ``--workdir`` names a run."""
+    return args.detector or ("3pt" if args.workdir is not None else "templates")
+
+
+def default_score_threshold(args) -> None:
+    """Set ``--score-threshold`` when not given to the default of the command's detector (the
+    two score on different scales: a contour score and a detection probability)."""
+    if getattr(args, "score_threshold", 0.0) is None:
+        args.score_threshold = (shape_detect.SCORE_THRESHOLD if detector_kind(args) == "templates"
+                                else detect.SCORE_THRESHOLD)
+
+
 def load_models(args, detector: bool = True):
     """The command's models (``infer.load``), with the onboarding and compilation caches: the
     detector of ``--detector`` (when ``detector``): the training-free templates detector by
@@ -150,7 +166,7 @@ def load_models(args, detector: bool = True):
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
     refining = hasattr(args, "refiner") and str(args.refiner) != "none"
     refiner = (args.refiner or default_refiner()) if refining else None
-    kind = args.detector or ("3pt" if args.workdir is not None else "templates")
+    kind = detector_kind(args)
     if kind == "templates" and args.workdir is not None:
         raise ValueError("--workdir is a 3PT-D run; --detector templates needs no network: "
                          "drop one of them")

@@ -255,6 +255,20 @@ def test_featureless_images_give_no_detections(scene):
         assert len(detector.detect(np.full(HW + (3,), value, np.uint8), K)) == 0
 
 
+def test_noisy_featureless_images_give_no_detections_at_the_default_threshold(scene):
+    """A dark or grey image with sensor noise, or uniform noise: no box at the default score
+    threshold (at 0.1 such images gave 50-60), where the rendered parts are still found."""
+    img, truth, objects, _ = scene
+    detector = ShapeSearchDetector(objects, depth_range=(330.0, 500.0), max_detections=10,
+                                   settings=SMALL)
+    assert detector.score_threshold == 0.4
+    rng = np.random.default_rng(0)
+    for noisy in (10 + rng.normal(0, 3, HW + (3,)), 128 + rng.normal(0, 8, HW + (3,)),
+                  rng.uniform(0, 255, HW + (3,))):
+        assert len(detector.detect(np.clip(noisy, 0, 255).astype(np.uint8), K)) == 0
+    assert {d.obj_id for d in detector.detect(img, K)} == set(truth)
+
+
 def test_bad_input_is_refused_with_the_reason(scene):
     img, _, objects, detector = scene
     with pytest.raises(ValueError, match="uint8 RGB"):
