@@ -31,11 +31,13 @@ import numpy as np
 
 from infer.checkpoint import load_detector, load_refiner
 from infer.contour_refine import ContourRefiner
+from infer.detect import SCORE_THRESHOLD as DETECTOR_SCORE_THRESHOLD
 from infer.detect import SceneDetector
 from infer.masks import PoseRenderer
 from infer.onboarding import ONBOARD_TEMPLATES, OnboardedObject, Onboarder
 from infer.refine import RefinedPose, SceneRefiner, refine_objects
 from infer.scene import Instances, assign_pixels, find_instances
+from infer.shape_detect import SCORE_THRESHOLD as TEMPLATES_SCORE_THRESHOLD
 from infer.shape_detect import ShapeSearchDetector
 from infer.shipped import CONTOUR, default_refiner, shipped
 from threept_jax.data.bop import Camera
@@ -57,6 +59,15 @@ __all__ = ["Camera", "Models", "TrackedFrame", "load", "run_scene", "refine", "t
 #: 3PT-D network (a training run, or the shipped one), and "templates", the training-free shape
 #: search from the CAD model alone (:mod:`infer.shape_detect`).
 DETECTORS = ("3pt", "templates")
+#: Each detector's default score threshold: they score on different scales (3PT-D a detection
+#: probability, the templates detector a contour score).
+SCORE_THRESHOLDS = {"3pt": DETECTOR_SCORE_THRESHOLD, "templates": TEMPLATES_SCORE_THRESHOLD}
+
+
+def default_detector(workdir) -> str:
+    """The detector :func:`load` picks when none is named: 3PT-D for a run directory, else
+    the training-free templates detector."""
+    return "3pt" if workdir is not None else "templates"
 
 
 @dataclasses.dataclass
@@ -171,7 +182,7 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
     naming it and how to restore it. Drop a refiner with ``dataclasses.replace(models,
     refiner=None)``."""
     if detector is None:
-        detector = "3pt" if workdir is not None else "templates"
+        detector = default_detector(workdir)
     if detector not in DETECTORS:
         raise ValueError(f"detector must be one of {', '.join(DETECTORS)}, got {detector!r}")
     if detector == "templates" and workdir is not None:

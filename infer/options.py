@@ -18,8 +18,14 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from infer import detect, shape_detect
-from infer.api import DEFAULT_CACHE, DETECTORS, Camera, load
+from infer.api import (
+    DEFAULT_CACHE,
+    DETECTORS,
+    SCORE_THRESHOLDS,
+    Camera,
+    default_detector,
+    load,
+)
 from infer.onboarding import ONBOARD_TEMPLATES
 from infer.shipped import default_refiner, describe, shipped
 from threept_jax.geometry.validate import validate_intrinsics, validate_rigid
@@ -142,15 +148,14 @@ def camera_options(p: argparse.ArgumentParser, per: str) -> None:
 
 def detector_kind(args) -> str:
     """``templates`` or ``3pt``: ``--detector``, else 3PT-D when ``--workdir`` names a run."""
-    return args.detector or ("3pt" if args.workdir is not None else "templates")
+    return args.detector or default_detector(args.workdir)
 
 
 def default_score_threshold(args) -> None:
     """Set ``--score-threshold`` when not given to the default of the command's detector (the
     two score on different scales: a contour score and a detection probability)."""
-    if getattr(args, "score_threshold", 0.0) is None:
-        args.score_threshold = (shape_detect.SCORE_THRESHOLD if detector_kind(args) == "templates"
-                                else detect.SCORE_THRESHOLD)
+    if hasattr(args, "score_threshold") and args.score_threshold is None:
+        args.score_threshold = SCORE_THRESHOLDS[detector_kind(args)]
 
 
 def load_models(args, detector: bool = True):

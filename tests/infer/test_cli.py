@@ -36,6 +36,26 @@ def _images_argv(tmp_path, *extra):
             "--mesh", f"1={tmp_path / 'a.ply'}", "--image", str(tmp_path / "a.png"), *extra]
 
 
+def test_score_threshold_defaults_to_the_detectors_own(files, capsys, monkeypatch):
+    """Without --score-threshold the command's detector sets it: 0.4 for the templates detector
+    (a contour score), 0.1 for 3PT-D (``--workdir`` or ``--detector 3pt``); a given value
+    stays."""
+    seen = []
+
+    def no_load(args, detector=True):
+        seen.append(args.score_threshold)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(cli, "load_models", no_load)
+    plain = ["images", "--out", str(files / "out"), "--mesh", f"1={files / 'a.ply'}",
+             "--image", str(files / "a.png"), "--K", "60,60,31.5,23.5"]
+    for extra in ([], ["--detector", "3pt"], ["--workdir", str(files)],
+                  ["--score-threshold", "0.25"]):
+        with pytest.raises(SystemExit):
+            main(plain + extra)
+    assert seen == [0.4, 0.1, 0.1, 0.25]
+
+
 def test_k_flags_and_camera_files_become_cameras(tmp_path):
     (cam,) = cameras_from_args(_args(tmp_path, "--K", "600,610,319.5,239.5"), 1)
     np.testing.assert_array_equal(cam.K, [[600, 0, 319.5], [0, 610, 239.5], [0, 0, 1]])
