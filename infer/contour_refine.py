@@ -11,11 +11,13 @@ refined pose scores lower, and keeps each instance's best-scored hypothesis. Ins
 each other's lines: an occluder map of every instance at its start pose is rendered first.
 Masks are the visible silhouettes at the kept poses (each pixel to the nearest instance).
 
-Compiled once per (instance bin, hypothesis bin, views, image size).
+Compiled once per process per (instance bin, hypothesis bin, views, image size, object count,
+settings), whichever refiner calls it.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import pathlib
@@ -68,6 +70,35 @@ def _cached_contours(mesh, cache: pathlib.Path | None) -> dict:
     return out
 
 
+#: Traces of :func:`_refine_instances` in this process (tests check that a call with known shapes
+#: does not compile again).
+TRACES = [0]
+
+
+@functools.partial(jax.jit, static_argnames=("hw_occ", "settings"))
+def _refine_instances(model, meshes, images, Ks, Ks_occ, T_cw, hyps, mesh_index, inst_mask, *,
+                      hw_occ, settings):
+    """Every hypothesis of every instance refined, each instance's best kept, and the id map of
+    the kept poses: (poses [N, 4, 4], scores [N], ids [V, H, W]). One jitted function for every
+    :class:`ContourRefiner`: two refiners of the same shapes share its compilation."""
+    TRACES[0] += 1  # runs only while tracing
+    N, K = hyps.shape[:2]
+    V = images.shape[0]
+    occ_id, occ_depth = occluder_maps(meshes, mesh_index, hyps[:, 0], Ks_occ, T_cw, hw_occ,
+                                      inst_mask)
+    flat = hyps.reshape(N * K, 4, 4)
+    obj = jnp.repeat(mesh_index, K)
+    inst = jnp.repeat(jnp.arange(N, dtype=jnp.int32), K)
+    vm = jnp.ones((N * K, V), bool)
+    res = refine_poses(model, images, Ks, T_cw, flat, obj, inst, occ_id, occ_depth, vm,
+                       settings)
+    scores = res.scores.reshape(N, K)
+    best = jnp.argmax(scores, -1)
+    poses = res.poses.reshape(N, K, 4, 4)[jnp.arange(N), best]
+    ids, _ = occluder_maps(meshes, mesh_index, poses, Ks, T_cw, images.shape[1:3], inst_mask)
+    return poses, scores[jnp.arange(N), best], ids
+
+
 class ContourRefiner:
     """Contour-evidence refinement of one object set (module docstring).
 
@@ -88,29 +119,6 @@ class ContourRefiner:
         self.model = stack_contours([_cached_contours(o.mesh, cache) for o in objects])
         self.meshes = RefinerMeshes.from_meshes(
             {o.obj_id: prepare_mesh(o.mesh, max_faces=2048, texture_size=None) for o in objects})
-        self.traces = 0
-        settings = self.settings
-
-        def run(model, meshes, images, Ks, Ks_occ, T_cw, hyps, mesh_index, inst_mask, hw_occ):
-            self.traces += 1  # runs only while tracing
-            N, K = hyps.shape[:2]
-            V = images.shape[0]
-            occ_id, occ_depth = occluder_maps(meshes, mesh_index, hyps[:, 0], Ks_occ, T_cw,
-                                              hw_occ, inst_mask)
-            flat = hyps.reshape(N * K, 4, 4)
-            obj = jnp.repeat(mesh_index, K)
-            inst = jnp.repeat(jnp.arange(N, dtype=jnp.int32), K)
-            vm = jnp.ones((N * K, V), bool)
-            res = refine_poses(model, images, Ks, T_cw, flat, obj, inst, occ_id, occ_depth, vm,
-                               settings)
-            scores = res.scores.reshape(N, K)
-            best = jnp.argmax(scores, -1)
-            poses = res.poses.reshape(N, K, 4, 4)[jnp.arange(N), best]
-            ids, _ = occluder_maps(meshes, mesh_index, poses, Ks, T_cw, images.shape[1:3],
-                                   inst_mask)
-            return poses, scores[jnp.arange(N), best], ids
-
-        self._run = jax.jit(run, static_argnames=("hw_occ",))
 
     def __call__(self, images: Sequence[np.ndarray], Ks: np.ndarray,
                  T_cam_world: np.ndarray | None, obj_ids: Sequence[int],
@@ -130,9 +138,10 @@ class ContourRefiner:
         hw_occ = (max(int(round(H * s)), 1), max(int(round(W * s)), 1))
         Ks = np.asarray(Ks, np.float64)
         Ks_occ = np.stack([scale_intrinsics(K, (H, W), hw_occ) for K in Ks]).astype(np.float32)
-        poses, scores, masks_id = jax.device_get(self._run(
+        poses, scores, masks_id = jax.device_get(_refine_instances(
             self.model, self.meshes.stacked, jnp.asarray(np.stack(images)),
-            Ks.astype(np.float32), Ks_occ, T_cw, hyps, mesh_index, inst_mask, hw_occ=hw_occ))
+            Ks.astype(np.float32), Ks_occ, T_cw, hyps, mesh_index, inst_mask, hw_occ=hw_occ,
+            settings=self.settings))
         out = []
         for i in range(len(obj_ids)):
             start = np.asarray(hyps[i, 0], np.float64)
