@@ -4,11 +4,33 @@ import os
 import pathlib
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+# Most of the suite's time is XLA compiling programs that then run a few times (docs/testing.md):
+# the tests compile without LLVM's optimisations (``xla_backend_optimization_level`` 0: the
+# refiner trainer's tests 182 -> 136 s, the inference loop's 166 -> 137 s alone on 2 cores),
+# except in the modules of FULLY_OPTIMISED, whose hundreds of training steps run twice as slow
+# so compiled. Subprocesses the tests start inherit XLA_FLAGS.
+os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                           + " --xla_backend_optimization_level=0").strip()
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
+from jax._src import compiler as _jax_compiler  # noqa: E402
 
 jax.config.update("jax_num_cpu_devices", 4)
+
+FULLY_OPTIMISED = ("tests/train/test_learning.py", "tests/train/test_refiner_learning.py")
+_fast_compile = [True]
+_get_compile_options = _jax_compiler.get_compile_options
+
+
+def _compile_options(*args, env_options_overrides=None, **kwargs):
+    if not _fast_compile[0]:  # XLA's default level, over the process's XLA_FLAGS
+        env_options_overrides = {"xla_backend_optimization_level": 3,
+                                 **(env_options_overrides or {})}
+    return _get_compile_options(*args, env_options_overrides=env_options_overrides, **kwargs)
+
+
+_jax_compiler.get_compile_options = _compile_options
 # The commands under test turn on JAX's persistent compilation cache (``options.load_models``)
 # for the whole worker process, pointing into a test's temporary folder: a later test of the
 # same worker then wrote compiled programs there, and jax 0.10 crashed with a segmentation
@@ -46,12 +68,24 @@ SLOW_FIRST = (  # by their measured test time, longest first (docs/testing.md)
 )
 
 
+def _module_path(item) -> str:
+    return pathlib.Path(str(item.fspath)).resolve().relative_to(ROOT).as_posix()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _optimisation_level(request):
+    """Programs compiled by the modules of FULLY_OPTIMISED (their module fixtures included: an
+    autouse fixture comes first in its scope) get XLA's full optimisation."""
+    _fast_compile[0] = _module_path(request.node) not in FULLY_OPTIMISED
+    yield
+    _fast_compile[0] = True
+
+
 def pytest_collection_modifyitems(config, items):
     rank = {name: i for i, name in enumerate(SLOW_FIRST)}
 
     def key(item):
-        path = pathlib.Path(str(item.fspath)).resolve().relative_to(ROOT).as_posix()
-        return rank.get(path, len(SLOW_FIRST))
+        return rank.get(_module_path(item), len(SLOW_FIRST))
 
     for item in items:
         if key(item) < len(SLOW_FIRST):
