@@ -86,6 +86,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def bop_args(dataset_dir, out, **options) -> argparse.Namespace:
+    """The options of ``python -m infer bop`` for a call from Python,
+    ``infer.bop_runner.run_bop(bop_args(...))``: every flag's default, then ``options`` by the
+    flags' names in Python (``refiner=pathlib.Path("contour")``, ``score_threshold=0.0``,
+    ``obj_ids=[1, 2]``), then the defaults that follow from them (the detector's score
+    threshold)."""
+    args = build_parser().parse_args(["bop", "--dataset-dir", str(dataset_dir), "--out", str(out)])
+    unknown = sorted(set(options) - set(vars(args)))
+    if unknown:
+        raise TypeError(f"not options of python -m infer bop: {unknown}")
+    vars(args).update(options)
+    default_score_threshold(args)
+    return args
+
+
 def run_images(args) -> list:
     from infer.detect import Detection
     from infer.visualize import draw_detections, empty_caption

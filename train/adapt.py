@@ -287,26 +287,23 @@ def infer_bop(workdir: pathlib.Path | None, dataset: pathlib.Path, out: pathlib.
               cache: pathlib.Path, max_detections: int, overlays: int = 0,
               overlay_threshold: float | None = None, refiner: pathlib.Path | str | None = None,
               obj_ids: Sequence[int] = (), targets: str = "all") -> dict:
-    """``python -m infer bop --evaluate`` of the best detector checkpoint of ``workdir`` (None:
-    the training-free templates detector, ``--detector templates``), and of ``refiner`` when
-    given (a run's best checkpoint or ``"contour"``), on ``dataset``'s ``val_pbr`` images, the
-    ``max_detections`` best detections of an image whatever their score; every object of the
-    dataset queried, or ``obj_ids``; ``targets="bop19"``: each image queried with the objects
-    of its BOP19 targets."""
-    from infer.cli import main as infer_main
+    """``python -m infer bop --evaluate`` (``infer.bop_runner.run_bop``, called in this process)
+    of the best detector checkpoint of ``workdir`` (None: the training-free templates detector,
+    ``--detector templates``), and of ``refiner`` when given (a run's best checkpoint or
+    ``"contour"``), on ``dataset``'s ``val_pbr`` images, the ``max_detections`` best detections
+    of an image whatever their score; every object of the dataset queried, or ``obj_ids``;
+    ``targets="bop19"``: each image queried with the objects of its BOP19 targets."""
+    from infer.bop_runner import run_bop
+    from infer.cli import bop_args
 
-    detector = (["--detector", "templates"] if workdir is None else
-                ["--workdir", str(workdir), "--step", "best", "--num-templates", "512"])
-    argv = ["bop", *detector, "--dataset-dir", str(dataset),
-            "--split", "val_pbr", "--targets", targets, "--evaluate",
-            "--score-threshold", "0", "--max-detections", str(max_detections),
-            "--out", str(out), "--overlays", str(overlays), "--cache-dir", str(cache)]
-    if overlay_threshold is not None:
-        argv += ["--overlay-threshold", f"{overlay_threshold:.6g}"]
-    argv += ["--refiner", "none" if refiner is None else str(refiner)]
-    if obj_ids:
-        argv += ["--obj-ids", *map(str, obj_ids)]
-    return infer_main(argv)
+    detector = (dict(detector="templates") if workdir is None else
+                dict(workdir=pathlib.Path(workdir), step="best", num_templates=512))
+    return run_bop(bop_args(
+        dataset, out, **detector, split="val_pbr", targets=targets, evaluate=True,
+        score_threshold=0.0, max_detections=max_detections, overlays=overlays,
+        cache_dir=pathlib.Path(cache), overlay_threshold=overlay_threshold,
+        refiner=pathlib.Path("none" if refiner is None else str(refiner)),
+        obj_ids=list(obj_ids) or None))
 
 
 #: The figures of a result that refinement changes (:func:`figures`).

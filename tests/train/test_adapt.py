@@ -1,6 +1,7 @@
 """``python -m train.adapt``: the whole adaptation command at toy size, run twice (resume)."""
 
 import json
+import pathlib
 
 import cv2
 import pytest
@@ -108,28 +109,48 @@ def test_figures_before_and_after_refinement():
 
 
 def test_test_stage_refines_the_test_scenes_only(tmp_path, monkeypatch):
-    import infer.cli
+    """The test stage calls the bop command's function with its options (no argument list)."""
+    import infer.bop_runner
 
     calls = []
 
-    def fake_main(argv):
-        calls.append(argv)
-        return _summary(0.2, initial=argv[argv.index("--refiner") + 1] != "none")
+    def fake_run_bop(args):
+        calls.append(args)
+        return _summary(0.2, initial=str(args.refiner) != "none")
 
-    monkeypatch.setattr(infer.cli, "main", fake_main)
+    monkeypatch.setattr(infer.bop_runner, "run_bop", fake_run_bop)
     report = adapt.test(tmp_path / "w", tmp_path / "data", tmp_path / "w", tmp_path / "cache",
                         overlays=2, instances=6, refiner=tmp_path / "w" / "refiner")
     (val, test) = calls
     # The val scenes choose the overlay threshold: boxes alone, no refiner (not a shipped one).
-    assert val[val.index("--refiner") + 1] == "none"
-    i = test.index("--refiner")
-    assert test[i + 1] == str(tmp_path / "w" / "refiner")
+    assert str(val.refiner) == "none"
+    assert test.refiner == tmp_path / "w" / "refiner"
+    for args in (val, test):  # the detector's best checkpoint, every detection kept for AP
+        assert args.workdir == tmp_path / "w" and args.step == "best" and args.evaluate
+        assert args.score_threshold == 0.0 and args.split == "val_pbr"
     # Scenes of --instances 6 hold 3 to 9 instances (datagen's spread 0.5).
-    assert val[val.index("--max-detections") + 1] == test[test.index("--max-detections") + 1] \
-        == "9"
+    assert val.max_detections == test.max_detections == 9
+    assert test.overlay_threshold == pytest.approx(0.27)
     assert report["overlay_threshold"] == pytest.approx(0.27)  # the val run's box F1 threshold
     assert report["test"]["pose_ap_initial"] == pytest.approx(0.7)
     assert "pose_ap_initial" not in report["val"]
+
+
+def test_bop_args_are_the_commands_defaults_with_the_options_given(tmp_path):
+    """bop_args against the parser on the same flags; a misspelt option is refused."""
+    from infer.cli import bop_args, build_parser
+
+    got = bop_args(tmp_path / "d", tmp_path / "o", refiner=pathlib.Path("contour"),
+                   score_threshold=0.25, obj_ids=[3, 1], max_detections=7)
+    want = build_parser().parse_args(
+        ["bop", "--dataset-dir", str(tmp_path / "d"), "--out", str(tmp_path / "o"),
+         "--refiner", "contour", "--score-threshold", "0.25", "--obj-ids", "3", "1",
+         "--max-detections", "7"])
+    assert vars(got) == vars(want)
+    # Without a threshold: the default detector's (templates: 0.4).
+    assert bop_args(tmp_path / "d", tmp_path / "o").score_threshold == 0.4
+    with pytest.raises(TypeError, match="max_detection"):
+        bop_args(tmp_path / "d", tmp_path / "o", max_detection=3)
 
 
 def small_refiner(args, records):
