@@ -12,15 +12,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from fixtures.training import ROOT, SUBPROCESS_ENV, launch_args, small_config
+from fixtures.training import ROOT, STEPS, SUBPROCESS_ENV, launch_args, small_config
 
 from threept_jax.data.run_dir import RunDir
 from threept_jax.models.configs import DetectorConfig
 from train import run_config
 from train import trainer_detector as td
 from train.configs import detector as detector_configs
-
-STEPS = td.StepCache(maxsize=4)
 
 
 def _assert_same_batch(a, b):

@@ -8,7 +8,7 @@ import time
 import jax
 import numpy as np
 import pytest
-from fixtures.training import ROOT, SUBPROCESS_ENV, launch_args, small_config
+from fixtures.training import ROOT, STEPS, SUBPROCESS_ENV, launch_args, small_config
 from flax import nnx
 
 from infer.checkpoint import load_detector
@@ -18,9 +18,6 @@ from threept_jax.models.vit import count_params
 from train import eval_detector, run_config, sharding
 from train import trainer_detector as td
 from train.configs import detector as detector_configs
-
-#: Compiled steps shared by this module's trainers (a resumed trainer reuses its run's step).
-STEPS = td.StepCache(maxsize=8)
 
 
 def _params_np(trainer):
@@ -203,23 +200,25 @@ def test_best_checkpoint_is_chosen_by_the_full_image_ap50(toy, tmp_path, monkeyp
 
 
 def test_every_evaluation_is_saved_with_its_checkpoint(toy, tmp_path, monkeypatch):
-    """Evaluations every 3 steps, checkpoints every 2, 6 steps: an evaluation's step (3) gets a
-    checkpoint holding its metrics, so it can be ranked; by hand the saves are 2, 3, 4, 6."""
+    """Evaluations every step, checkpoints every 2, 3 steps (the module's config, so its
+    compiled step is the first test's): an evaluation's step (1, neither a checkpoint step nor
+    the last) gets a checkpoint holding its metrics, so it can be ranked; by hand the saves are
+    1, 2, 3."""
     from infer.checkpoint import saved_metrics
 
-    scores = iter([0.3, 0.6])
+    scores = iter([0.3, 0.6, 0.5])
     monkeypatch.setattr(eval_detector, "full_image_metrics",
                         lambda *a, **k: {"eval/ap50": next(scores)})
     monkeypatch.setattr(eval_detector, "compute_metrics", lambda *a, **k: {})
-    cfg = small_config(toy, total_steps=6, **{"eval.every_steps": 3, "checkpoint.every_steps": 2,
-                                              "checkpoint.max_to_keep": 10})
+    cfg = small_config(toy, **{"eval.every_steps": 1, "checkpoint.every_steps": 2,
+                               "checkpoint.max_to_keep": 10})
     with pytest.warns(UserWarning, match="no 6D AP"):
         td.train(cfg, tmp_path, devices=jax.devices()[:1], step_cache=STEPS)
     run = RunDir(tmp_path)
-    assert run.checkpoint_steps() == [2, 3, 4, 6]
-    assert saved_metrics(tmp_path, 3)["eval/ap50"] == 0.3
-    assert saved_metrics(tmp_path, 6)["eval/ap50"] == 0.6
-    assert run.best_step() == 6
+    assert run.checkpoint_steps() == [1, 2, 3]
+    assert saved_metrics(tmp_path, 1)["eval/ap50"] == 0.3
+    assert saved_metrics(tmp_path, 3)["eval/ap50"] == 0.5
+    assert run.best_step() == 2
 
 
 def test_killed_subprocess_resumes_to_the_same_batch(toy, tmp_path):

@@ -9,15 +9,12 @@ import subprocess
 
 import jax
 import pytest
-from fixtures.training import ROOT, SUBPROCESS_ENV, launch_args, small_config
+from fixtures.training import ROOT, STEPS, SUBPROCESS_ENV, launch_args, small_config
 
 from threept_jax.data.run_dir import RunDir
 from train import run_config
 from train import trainer_detector as td
 from train.configs import detector as detector_configs
-
-STEPS = td.StepCache(maxsize=2)
-
 
 # --------------------------------------------------------------------------- values
 
@@ -155,20 +152,20 @@ def tensorboard_scalar_steps(tb_dir) -> dict[str, list[int]]:
 
 
 def test_resume_logs_each_step_once_and_keeps_the_changed_config(toy, tmp_path):
-    """A run that logged steps 3 and 4 but died before its step-4 checkpoint resumes from 2:
-    TensorBoard shows each step once. The resume changes a refused key (refused without the
-    flag, config.json untouched) and a free one; with the flag both are recorded."""
+    """A run that logged step 3 but died before its step-3 checkpoint resumes from 2:
+    TensorBoard shows each step once (the tests' 3-step config: its compiled step is shared).
+    The resume changes a refused key (refused without the flag, config.json untouched) and a
+    free one; with the flag both are recorded."""
     workdir = tmp_path / "run"
     one = jax.devices()[:1]
-    cfg = small_config(toy, total_steps=4)
+    cfg = small_config(toy)
     td.train(cfg, workdir, devices=one, step_cache=STEPS)
     run = RunDir(workdir)
-    assert run.checkpoint_steps() == [2, 4]
-    shutil.rmtree(run.checkpoint_dir / "4")  # died after logging step 4, before saving it
+    assert run.checkpoint_steps() == [2, 3]
+    shutil.rmtree(run.checkpoint_dir / "3")  # died after logging step 3, before saving it
     saved_text = run.config_file.read_text()
 
-    changed = small_config(toy, total_steps=4, **{"eval.num_examples": 5,
-                                                  "checkpoint.max_to_keep": 2})
+    changed = small_config(toy, **{"eval.num_examples": 5, "checkpoint.max_to_keep": 2})
     with pytest.raises(run_config.ConfigError,
                        match=r"eval\.num_examples=6 \(now 5\); .*--allow_config_change"):
         td.DetectorTrainer(changed, workdir, devices=one, step_cache=STEPS)
@@ -181,7 +178,7 @@ def test_resume_logs_each_step_once_and_keeps_the_changed_config(toy, tmp_path):
     steps = tensorboard_scalar_steps(run.tb_dir)
     assert "train/loss" in steps and "train/learning_rate" in steps
     for tag, seen in steps.items():
-        assert seen == [1, 2, 3, 4], (tag, seen)
+        assert seen == [1, 2, 3], (tag, seen)
 
     history = run.read_config_history()
     assert len(history) == 1
