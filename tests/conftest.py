@@ -4,13 +4,6 @@ import os
 import pathlib
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-# Most of the suite's time is XLA compiling programs that then run a few times (docs/testing.md):
-# the tests compile without LLVM's optimisations (``xla_backend_optimization_level`` 0: the
-# refiner trainer's tests 182 -> 136 s, the inference loop's 166 -> 137 s alone on 2 cores),
-# except in the modules of FULLY_OPTIMISED, whose hundreds of training steps run twice as slow
-# so compiled. Subprocesses the tests start inherit XLA_FLAGS.
-os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
-                           + " --xla_backend_optimization_level=0").strip()
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
@@ -18,14 +11,21 @@ from jax._src import compiler as _jax_compiler  # noqa: E402
 
 jax.config.update("jax_num_cpu_devices", 4)
 
-FULLY_OPTIMISED = ("tests/train/test_learning.py", "tests/train/test_refiner_learning.py")
-_fast_compile = [True]
+# Most of the suite's time is XLA compiling programs that then run a few times (docs/testing.md).
+# The modules of FAST_COMPILE compile without LLVM's optimisations (xla_backend_optimization_level
+# 0), each measured alone on 2 cores, A/B: the refiner trainer's tests 182 -> 136 s, the
+# inference loop's 166 -> 137 s, the detector trainer's 134 -> 121 s, adapt's 230 -> 209 s. Not
+# the whole suite: modules that run what they compile many times (the noise ladder, template
+# matching, the learning tests) lose more than they gain.
+FAST_COMPILE = ("tests/train/test_refiner_trainer.py", "tests/pipeline/test_refine_loop.py",
+                "tests/train/test_detector_trainer.py", "tests/train/test_adapt.py")
+_fast_compile = [False]
 _get_compile_options = _jax_compiler.get_compile_options
 
 
 def _compile_options(*args, env_options_overrides=None, **kwargs):
-    if not _fast_compile[0]:  # XLA's default level, over the process's XLA_FLAGS
-        env_options_overrides = {"xla_backend_optimization_level": 3,
+    if _fast_compile[0]:
+        env_options_overrides = {"xla_backend_optimization_level": 0,
                                  **(env_options_overrides or {})}
     return _get_compile_options(*args, env_options_overrides=env_options_overrides, **kwargs)
 
@@ -74,11 +74,11 @@ def _module_path(item) -> str:
 
 @pytest.fixture(scope="module", autouse=True)
 def _optimisation_level(request):
-    """Programs compiled by the modules of FULLY_OPTIMISED (their module fixtures included: an
-    autouse fixture comes first in its scope) get XLA's full optimisation."""
-    _fast_compile[0] = _module_path(request.node) not in FULLY_OPTIMISED
+    """Programs compiled by the modules of FAST_COMPILE (their module fixtures included: an
+    autouse fixture comes first in its scope) skip LLVM's optimisations."""
+    _fast_compile[0] = _module_path(request.node) in FAST_COMPILE
     yield
-    _fast_compile[0] = True
+    _fast_compile[0] = False
 
 
 def pytest_collection_modifyitems(config, items):

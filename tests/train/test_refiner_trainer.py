@@ -146,7 +146,9 @@ def test_launcher_trains_the_refiner_and_refuses_a_detector_key(records, tmp_pat
              "--config.eval.every_steps=0", "--config.eval.num_steps=1",
              "--config.checkpoint.async_save=False",
              "--config.progress_bar=False"]
-    proc = subprocess.run(base + ["--workdir", str(tmp_path / "w")] + small, env=SUBPROCESS_ENV,
+    # One step: compiling is the work, so without LLVM's optimisations (tests/conftest.py).
+    fast = {**SUBPROCESS_ENV, "XLA_FLAGS": "--xla_backend_optimization_level=0"}
+    proc = subprocess.run(base + ["--workdir", str(tmp_path / "w")] + small, env=fast,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert RunDir(tmp_path / "w", model="refiner").checkpoint_steps() == [1]
