@@ -9,11 +9,13 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 from jax._src import compiler as _jax_compiler  # noqa: E402
 
+from train.trainer import FAST_COMPILE_OPTIONS  # noqa: E402
+
 jax.config.update("jax_num_cpu_devices", 4)
 
 # Most of the suite's time is XLA compiling programs that then run a few times (docs/testing.md).
-# The modules of FAST_COMPILE compile without LLVM's optimisations (xla_backend_optimization_level
-# 0), each measured alone on 2 cores, A/B: the refiner trainer's tests 182 -> 136 s, the
+# The modules of FAST_COMPILE compile with FAST_COMPILE_OPTIONS (no LLVM optimisation), each
+# measured alone on 2 cores, A/B: the refiner trainer's tests 182 -> 136 s, the
 # inference loop's 166 -> 137 s, the detector trainer's 134 -> 121 s, adapt's 230 -> 209 s. Not
 # the whole suite: modules that run what they compile many times (the noise ladder, template
 # matching, the learning tests) lose more than they gain.
@@ -25,8 +27,7 @@ _get_compile_options = _jax_compiler.get_compile_options
 
 def _compile_options(*args, env_options_overrides=None, **kwargs):
     if _fast_compile[0]:
-        env_options_overrides = {"xla_backend_optimization_level": 0,
-                                 **(env_options_overrides or {})}
+        env_options_overrides = {**FAST_COMPILE_OPTIONS, **(env_options_overrides or {})}
     return _get_compile_options(*args, env_options_overrides=env_options_overrides, **kwargs)
 
 

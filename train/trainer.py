@@ -115,9 +115,10 @@ class CompiledStep:
     assets: Any = None
 
 
-#: XLA options of the jitted initialisation (:func:`compile_step`): it runs once per run, so
-#: compiling it fast matters more than the code it makes.
-INIT_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
+#: XLA options for a program that runs so few times that compiling it fast matters more than
+#: the code it makes: no LLVM optimisation. The jitted initialisation (:func:`compile_step`) runs
+#: once per run; the tests use them too (tests/conftest.py).
+FAST_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
 
 
 def compile_step(make_model: Callable[[], nnx.Module], step_fn: Callable, tx, schedule,
@@ -144,7 +145,7 @@ def compile_step(make_model: Callable[[], nnx.Module], step_fn: Callable, tx, sc
         step = lambda state, batch: jitted(state, batch, placed)  # noqa: E731
     # The initialisation runs once: compiled without LLVM's optimisations (the refiner's tiny
     # config: 13.5 s -> 4.9 s to compile on 2 CPU cores, 0.01 s -> 0.05 s to run).
-    init_jit = jax.jit(init, out_shardings=shardings, compiler_options=INIT_COMPILER_OPTIONS)
+    init_jit = jax.jit(init, out_shardings=shardings, compiler_options=FAST_COMPILE_OPTIONS)
     return CompiledStep(graphdef, abstract_state, shardings, init_jit, step, schedule, counter,
                         jitted=jitted, assets=placed)
 
