@@ -109,16 +109,12 @@ def look_at_camera(
 ) -> np.ndarray:
     """T_cam_world [4, 4] (float64) of an OpenCV camera at ``eye`` looking at ``target`` (mm).
 
-    Built with ``threept_jax.geometry.camera.look_at``; ``roll_deg`` then turns the camera about
-    its optical axis (positive: the image content turns clockwise), which keeps the target on
-    the axis. The rotation is re-orthonormalised in float64.
+    Built with ``threept_jax.geometry.camera.look_at`` in float64 NumPy (never XLA, whose bits
+    depend on the backend and compile options: the same arguments give the same scene bytes);
+    ``roll_deg`` then turns the camera about its optical axis (positive: the image content turns
+    clockwise), which keeps the target on the axis. The rotation is re-orthonormalised.
     """
-    T = np.asarray(
-        cam.look_at(
-            np.asarray(eye, np.float32), np.asarray(target, np.float32), np.asarray(up, np.float32)
-        ),
-        np.float64,
-    )
+    T = cam.look_at(np.asarray(eye, np.float64), np.asarray(target, np.float64), up)
     R = T[:3, :3]
     u, _, vt = np.linalg.svd(R)
     R = u @ vt

@@ -7,6 +7,7 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
+from fixtures.training import STEPS  # noqa: E402
 from jax._src import compiler as _jax_compiler  # noqa: E402
 
 from train.trainer import FAST_COMPILE_OPTIONS  # noqa: E402
@@ -76,10 +77,26 @@ def _module_path(item) -> str:
 @pytest.fixture(scope="module", autouse=True)
 def _optimisation_level(request):
     """Programs compiled by the modules of FAST_COMPILE (their module fixtures included: an
-    autouse fixture comes first in its scope) skip LLVM's optimisations."""
-    _fast_compile[0] = _module_path(request.node) in FAST_COMPILE
+    autouse fixture comes first in its scope) skip LLVM's optimisations.
+
+    Such a module starts and ends with JAX's in-memory caches and the shared training steps
+    emptied, so no program compiled at one level runs at the other: the levels round floats
+    differently (eager ``jnp`` ops too), and a later module comparing its results with a
+    subprocess's got other bits (``datagen.generate``'s one-thread test failed that way in CI).
+    """
+    fast = _module_path(request.node) in FAST_COMPILE
+    if fast:
+        _forget_compiled_programs()
+    _fast_compile[0] = fast
     yield
     _fast_compile[0] = False
+    if fast:
+        _forget_compiled_programs()
+
+
+def _forget_compiled_programs():
+    jax.clear_caches()
+    STEPS.clear()
 
 
 def pytest_collection_modifyitems(config, items):

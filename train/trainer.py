@@ -172,6 +172,10 @@ class StepCache:
                 self._steps.popitem(last=False)
         return self._steps[key]
 
+    def clear(self) -> None:
+        """Drop every step (the next ``get`` of each key builds it again)."""
+        self._steps.clear()
+
 
 def check_finite(step: int, metrics: Mapping[str, float], data_hint: str) -> None:
     """Stop with a clear message when the loss or the gradient norm is not finite."""

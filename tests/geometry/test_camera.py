@@ -78,6 +78,11 @@ def test_look_at_centres_target():
     above = camera.project(camera.transform(T, (target + [0, 0, 50])[None].astype(np.float32)), K)
     assert above[0, 1] < 240
     assert np.linalg.det(np.asarray(T)[:3, :3]) == pytest.approx(1.0, abs=1e-5)
+    # NumPy input: float64 NumPy (host code's bits never depend on XLA); JAX input: JAX float32.
+    assert isinstance(T, np.ndarray) and T.dtype == np.float64
+    Tj = camera.look_at(jnp.asarray(eye, jnp.float32), jnp.asarray(target, jnp.float32))
+    assert isinstance(Tj, jax.Array) and Tj.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(Tj), T, atol=1e-3)
 
 
 def test_box_center_ray_hand_case_numpy_and_jax():

@@ -7,12 +7,13 @@ import pytest
 import trimesh
 
 from threept_jax.geometry.camera import crop_intrinsics
-from threept_jax.render import Mesh, raster, to_raster_mesh
+from threept_jax.render import Mesh, crop_and_resize, raster, to_raster_mesh
 from threept_jax.render.mitsuba_backend import (
     Material,
     MitsubaRenderer,
     MitsubaScene,
     load_mitsuba,
+    resample_square_render,
     square_pixel_camera,
 )
 
@@ -46,6 +47,16 @@ def test_square_pixel_camera_crops_back_to_K(K):
     assert K_sq[0, 0] == K_sq[1, 1] == max(K[0, 0], K[1, 1])
     np.testing.assert_allclose(np.asarray(crop_intrinsics(K_sq, box, HW)), K, rtol=1e-6)  # float32
     assert box[0] >= 0 and box[1] >= 0 and box[2] <= hw_sq[1] and box[3] <= hw_sq[0]
+
+
+@pytest.mark.parametrize("K", [_K(90, 70, 30.2, 25.7), _K(60, 85, 35.0, 20.0)])
+def test_square_render_resamples_as_crop_and_resize(K):
+    """The host resampling of a square-pixel render (SciPy, float64) against the JAX crop."""
+    K_sq, hw_sq, box = square_pixel_camera(K, HW)
+    img = np.random.default_rng(0).random((*hw_sq, 3)).astype(np.float32)
+    got = resample_square_render(img, box, HW)
+    assert got.shape == (*HW, 3) and got.dtype == np.float32
+    np.testing.assert_allclose(got, np.asarray(crop_and_resize(img, box, HW)), atol=1e-5)
 
 
 @pytest.mark.parametrize("K", [_K(80, 80, 26.5, 27.0), _K(95, 70, 29.2, 26.7),

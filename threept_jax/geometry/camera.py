@@ -91,8 +91,22 @@ def look_at(eye: Array, target: Array, up: Array = (0.0, 0.0, 1.0)) -> Array:
     """T_cam_world [4, 4] of an OpenCV camera at ``eye`` looking at ``target``.
 
     ``up`` is the world direction that appears upwards in the image (camera -y); it must not
-    be parallel to the viewing direction.
+    be parallel to the viewing direction. JAX input (``eye`` or ``target``) is computed in JAX
+    float32; anything else in float64 NumPy, so host code (data generation) gives the same bits
+    whatever XLA backend or compile options the process has.
     """
+    if not isinstance(eye, jax.Array) and not isinstance(target, jax.Array):
+        eye, target = np.asarray(eye, np.float64), np.asarray(target, np.float64)
+        z = target - eye
+        z = z / np.linalg.norm(z, axis=-1, keepdims=True)
+        x = np.cross(z, np.asarray(up, np.float64))
+        x = x / np.linalg.norm(x, axis=-1, keepdims=True)
+        R_cam_world = np.stack([x, np.cross(z, x), z], axis=-2)
+        T = np.zeros((*R_cam_world.shape[:-2], 4, 4))
+        T[..., :3, :3] = R_cam_world
+        T[..., :3, 3] = -np.einsum("...ij,...j->...i", R_cam_world, eye)
+        T[..., 3, 3] = 1.0
+        return T
     eye, target = jnp.asarray(eye, jnp.float32), jnp.asarray(target, jnp.float32)
     up = jnp.asarray(up, jnp.float32)
     z = target - eye

@@ -17,7 +17,7 @@ docs/design.md section 4. Two parts:
 
 Mitsuba's perspective sensor has square pixels; for a path-traced view with fx != fy we render
 square pixels at the larger focal length and resample exactly onto the requested K
-(:func:`square_pixel_camera`, :func:`threept_jax.render.crop.crop_and_resize`).
+(:func:`square_pixel_camera`, :func:`resample_square_render`).
 
 Variants: ``cuda_ad_rgb`` when a CUDA device is present, else ``llvm_ad_rgb`` (needs
 libLLVM >= 16; ``DRJIT_LIBLLVM_PATH`` is pointed at libLLVM-19 when it is installed). Mitsuba
@@ -156,6 +156,26 @@ def square_pixel_camera(K: np.ndarray, hw: tuple[int, int]):
     y0 = cys + 0.5 - (cy + 0.5) / sy
     box = np.array([x0, y0, x0 + W / sx, y0 + H / sy])
     return K_sq, (Hs, Ws), box
+
+
+def resample_square_render(image: np.ndarray, box: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    """The render of :func:`square_pixel_camera`'s K_sq [Hs, Ws, C] -> the view of K [H, W, C].
+
+    Bilinear sampling of the crop ``box`` (pixel-edge xyxy) at the output pixels' centres, as
+    :func:`threept_jax.render.crop.crop_and_resize` samples, computed by SciPy in float64 on the
+    host: a data generator's bytes never depend on XLA's backend or compile options.
+    """
+    from scipy import ndimage
+
+    H, W = int(hw[0]), int(hw[1])
+    x0, y0, x1, y1 = (float(b) for b in box)
+    sy, sx = (y1 - y0) / H, (x1 - x0) / W  # input pixels per output pixel
+    # Output pixel centre i samples the input at (i + 0.5) * s + x0 - 0.5; channels map to
+    # themselves.
+    offset = [y0 + 0.5 * sy - 0.5, x0 + 0.5 * sx - 0.5, 0.0]
+    return ndimage.affine_transform(np.asarray(image, np.float32), [sy, sx, 1.0], offset=offset,
+                                    output_shape=(H, W, image.shape[-1]), order=1,
+                                    mode="grid-constant", cval=0.0)
 
 
 def _check_pose_k(T: np.ndarray, K: np.ndarray, what: str = "T_cam_obj") -> None:
@@ -647,9 +667,7 @@ class MitsubaScene:
             img = oidn(img[..., 0:3], img[..., 3:6], img[..., 6:9])
         img = img[..., :3]
         if box is not None:
-            from threept_jax.render.crop import crop_and_resize
-
-            img = np.asarray(crop_and_resize(img, box, hw))
+            img = resample_square_render(img, box, hw)
         return img if linear else linear_to_srgb(img).astype(np.float32)
 
     def _geometry(self, K, T, hw, near, outputs):
