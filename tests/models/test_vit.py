@@ -232,3 +232,30 @@ def test_cross_attention_block_matches_hand_composition():
     # Queries see the context: changing a context token changes every query's output.
     moved = ctx.at[:, 0].set(jnp.asarray(rng.normal(size=(2, 64)), jnp.float32))
     assert np.abs(np.asarray(block(x, moved) - got)).max(axis=-1).min() > 1e-4
+
+
+def test_conv_stem_parameters_shapes_and_receptive_field():
+    """``stem="conv"``: log2(patch) 3x3 stride-2 convolutions with LayerNorm (channels doubling
+    up to the width, at least 16), then a 1x1 projection; counted by hand. A token's receptive
+    field is wider than its patch (a pixel changes the tokens of the next patches too) and
+    local (no norm over the image): tokens far from the pixel do not change."""
+    width, patch = 64, 16
+    cfg = ViTConfig.from_variant("tiny/16", image_size=64, stem="conv")
+    vit = ViT(cfg, rngs=nnx.Rngs(0))
+    channels = [16, 16, 32, 64]
+    convs = sum(9 * c_in * c_out + c_out for c_in, c_out in zip([3, *channels[:-1]], channels))
+    stem = convs + sum(2 * c for c in channels) + channels[-1] * width + width
+    plain = vit_param_count(width, 2, 256, patch, num_patches=16)
+    assert count_params(vit) == plain - (patch * patch * 3 * width + width) + stem
+    img = np.zeros((1, 64, 64, 3), np.float32)
+    base = np.asarray(vit.embed_patches(img))[0].reshape(4, 4, width)
+    img[0, 32, 32] = 1.0  # top-left pixel of patch (2, 2)
+    moved = np.abs(np.asarray(vit.embed_patches(img))[0].reshape(4, 4, width) - base).max(-1)
+    # 'SAME' stride-2 3x3 windows start at 2i: the pixel reaches output 2i = 32 and 2i + 2 = 32
+    # of the first layer, i.e. tokens 1 and 2 after four layers.
+    assert moved[1, 1] > 0 and moved[2, 2] > 0
+    assert np.all(moved[0, :] == 0) and np.all(moved[:, 0] == 0) and moved[3, 3] == 0
+    with pytest.raises(ValueError, match="power of two"):
+        ViTConfig.from_variant("L/14", stem="conv")
+    with pytest.raises(ValueError, match="stem must be"):
+        ViTConfig.from_variant("tiny", stem="resnet")

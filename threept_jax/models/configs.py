@@ -33,6 +33,9 @@ VIT_SIZES: dict[str, tuple[int, int, int, int]] = {
 #: Patch size used when a variant names no patch (only sensible for the test model).
 _DEFAULT_PATCH = {"tiny": 16, "mini": 16}
 
+#: Patch embeddings of the ViT (``ViTConfig.stem``).
+STEMS = ("patch", "conv")
+
 #: Tile side the paper's pan-and-scan uses; image sizes default to the nearest patch multiple.
 PAPER_TILE_SIZE = 512
 
@@ -87,7 +90,10 @@ class ViTConfig:
     ``dtype`` is the compute dtype, ``param_dtype`` the storage dtype; layer norms, softmax and
     the position-embedding resize always run in float32. ``attention_impl`` goes to
     ``jax.nn.dot_product_attention``: ``None``/``"xla"`` everywhere, ``"cudnn"`` for cuDNN flash
-    attention on NVIDIA GPUs (bfloat16/float16 compute only).
+    attention on NVIDIA GPUs (bfloat16/float16 compute only). ``stem``: ``"patch"``, the plain
+    ViT's one strided patch convolution, or ``"conv"``, a stack of 3x3 stride-2 convolutions
+    ending in a 1x1 projection (Xiao et al., "Early Convolutions Help Transformers See Better",
+    NeurIPS 2021; :class:`threept_jax.models.vit.ConvStem`), for patch sizes that are powers of two.
     """
 
     width: int
@@ -102,6 +108,7 @@ class ViTConfig:
     layernorm_epsilon: float = 1e-6
     attention_impl: str | None = None
     remat: bool = False
+    stem: str = "patch"
     dtype: Any = jnp.float32
     param_dtype: Any = jnp.float32
 
@@ -124,6 +131,13 @@ class ViTConfig:
             )
         if self.posemb not in ("learned", "sincos2d"):
             raise ValueError(f"posemb must be 'learned' or 'sincos2d', got {self.posemb!r}")
+        if self.stem not in STEMS:
+            raise ValueError(f"stem must be one of {STEMS}, got {self.stem!r}")
+        if self.stem == "conv" and (self.patch_size < 2 or self.patch_size & (self.patch_size - 1)):
+            raise ValueError(
+                f"the conv stem halves the image log2(patch) times, so the patch size must be a "
+                f"power of two >= 2, got {self.patch_size}; use stem='patch' for /14"
+            )
         if self.attention_impl not in (None, "xla", "cudnn"):
             raise ValueError(
                 f"attention_impl must be None, 'xla' or 'cudnn', got {self.attention_impl!r}"
@@ -197,6 +211,8 @@ class DetectorConfig(_VariantSizes):
       logit_scale_init: initial scale of the cosine similarity in orientation logits.
       attention_impl: ``None``/``"xla"``, or ``"cudnn"`` (flash attention, GPU, bf16/fp16).
       remat: rematerialise each transformer block in the backward pass.
+      stem: the backbone's patch embedding, ``"patch"`` (the plain ViT's) or ``"conv"``
+        (:class:`ViTConfig`).
       dtype / param_dtype: compute and storage dtypes of every layer.
     """
 
@@ -215,6 +231,7 @@ class DetectorConfig(_VariantSizes):
     class_prior: float = 0.01
     logit_scale_init: float = 10.0
     remat: bool = False
+    stem: str = "patch"
     dtype: Any = jnp.float32
     param_dtype: Any = jnp.float32
 
@@ -254,6 +271,7 @@ class DetectorConfig(_VariantSizes):
             posemb=self.posemb,
             attention_impl=self.attention_impl,
             remat=self.remat,
+            stem=self.stem,
             dtype=self.dtype,
             param_dtype=self.param_dtype,
         )
@@ -370,6 +388,7 @@ class RefinerConfig(_VariantSizes):
             layerscale_init=self.layerscale_init,
             attention_impl=self.attention_impl,
             remat=self.remat,
+            stem=self.stem,
             dtype=self.dtype,
             param_dtype=self.param_dtype,
         )

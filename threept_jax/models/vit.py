@@ -251,6 +251,36 @@ def apply_cross_block(block: CrossAttentionBlock, x: Array, context: Array, *,
     return (_apply_cross_remat if remat else _apply_cross)(block, x, context)
 
 
+class ConvStem(nnx.Module):
+    """Patch embedding by early convolutions (Xiao et al., NeurIPS 2021): [B, H, W, 3] ->
+    [B, H / patch, W / patch, width].
+
+    log2(patch) 3x3 convolutions of stride 2 ('SAME' padding), each followed by a per-pixel
+    LayerNorm over channels (ConvNeXt's; the paper's BatchNorm would need batch statistics, and
+    a norm over the image would make every token depend on the whole tile) and GELU, with the
+    channels doubling to the width (at least 16 in the first), then a 1x1 projection to the
+    width. A token sees a little more than its patch, and the image is filtered before it is
+    cut into tokens, which the paper found to make ViTs converge faster and less sensitive to
+    the optimiser's settings.
+    """
+
+    def __init__(self, width: int, patch_size: int, *, dtype: Any, param_dtype: Any,
+                 rngs: nnx.Rngs):
+        n = int(patch_size).bit_length() - 1  # patch = 2**n
+        channels = [max(16, width >> (n - 1 - i)) for i in range(n)]
+        kw = dict(dtype=dtype, param_dtype=param_dtype, rngs=rngs)
+        self.convs = nnx.List([
+            nnx.Conv(c_in, c_out, kernel_size=(3, 3), strides=(2, 2), padding="SAME", **kw)
+            for c_in, c_out in zip([3, *channels[:-1]], channels)])
+        self.norms = nnx.List([nnx.LayerNorm(c, epsilon=1e-6, **kw) for c in channels])
+        self.proj = nnx.Conv(channels[-1], width, kernel_size=(1, 1), **kw)
+
+    def __call__(self, x: Array) -> Array:
+        for conv, norm in zip(self.convs, self.norms):
+            x = jax.nn.gelu(norm(conv(x)))
+        return self.proj(x)
+
+
 class ViT(nnx.Module):
     """ViT encoder with optional extra (prior) tokens and register tokens.
 
@@ -269,8 +299,11 @@ class ViT(nnx.Module):
         self.cfg = cfg
         kw = dict(dtype=cfg.dtype, param_dtype=cfg.param_dtype, rngs=rngs)
         p = cfg.patch_size
-        self.patch_embed = nnx.Conv(3, cfg.width, kernel_size=(p, p), strides=(p, p),
-                                    padding="VALID", **kw)
+        if cfg.stem == "conv":
+            self.patch_embed = ConvStem(cfg.width, p, **kw)
+        else:
+            self.patch_embed = nnx.Conv(3, cfg.width, kernel_size=(p, p), strides=(p, p),
+                                        padding="VALID", **kw)
         gh, gw = cfg.native_grid
         if cfg.posemb == "learned":
             init = nnx.initializers.normal(1.0 / np.sqrt(cfg.width))

@@ -1,0 +1,134 @@
+"""Adapted 3PT-D against a standard detector at equal CPU minutes (issue 38).
+
+Each arm trains the demo's adapted detector (``train/configs/detector.py:tiny`` from scratch,
+as ``python -m demo`` does) on the same records with one change, for the steps that fit
+``--minutes`` at its measured step time (``train.adapt``'s budget: 85 % of the minutes for
+steps), with four held-out evaluations on the way (full-image val AP50 and the GT-anchored tile
+AP50, a diagnostic); then every arm, and YOLOv8n when ``--yolo-python`` names an environment
+with Ultralytics (``bench/yolo_reference.py``), is scored on the same test images by the
+project's evaluator: box AP50 / AP with every part queried, the default inference path
+(``train.adapt``'s test stage, no refinement). Prints one row per arm and each arm's AP50 as a
+ratio of the first arm's (the reference run, in this process).
+
+    python bench/adapt_pace.py --records runs/demo/adapted/records \\
+        --test runs/demo/adapted/data/test --minutes 10 --arms patch conv \\
+        [--yolo-python /path/to/venv/bin/python] [--out runs/bench/adapt_pace]
+
+The arms (:data:`ARMS`) are config overrides; ``--set KEY=VALUE`` adds to every arm.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import subprocess
+import sys
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+#: arm name -> overrides of the ``tiny`` detector config (dotted keys).
+ARMS = {
+    "patch": {},  # the demo's detector as it is
+    "conv": {"model.stem": "conv"},  # early convolutions instead of the patch convolution
+}
+
+
+def _set(config, key: str, value) -> None:
+    *path, last = key.split(".")
+    node = config
+    for k in path:
+        node = node[k]
+    node[last] = type(node[last])(value) if node[last] is not None else value
+
+
+def train_arm(name: str, overrides: dict, records: pathlib.Path, test: pathlib.Path,
+              minutes: float, out: pathlib.Path) -> dict:
+    from threept_jax.data.run_dir import RunDir
+    from train import adapt, stages
+    from train.configs.detector import get_config
+
+    config = get_config("tiny")
+    config.data_dir = str(records.resolve())
+    config.progress_bar = False
+    for k, v in overrides.items():
+        _set(config, k, v)
+    step_s = stages.measure_step_seconds(config)
+    steps = max(adapt.NUM_EVALS, int(minutes * 60 * (1 - stages.EVAL_SHARE) / step_s))
+    work = out / name
+    print(f"{name}: {step_s:.3f} s per step -> {steps} steps in {minutes:g} min", flush=True)
+    start = time.perf_counter()
+    stages.train_to(config, steps, work, evals=adapt.NUM_EVALS)
+    train_s = time.perf_counter() - start
+    run = RunDir(work)
+    curve = []
+    for s in run.checkpoint_steps():
+        m = run.saved_metrics(s)
+        curve.append({"step": s, "minute": round(s * step_s / 60 / (1 - stages.EVAL_SHARE), 2),
+                      "val_ap50": m.get("eval/ap50"),
+                      "tile_ap50": m.get("eval/tile_diagnostic/ap50")})
+    keep = adapt.max_detections(adapt.INSTANCES)
+    figs = adapt.figures(adapt.infer_bop(work, test, out / f"{name}_test", out / "cache", keep))
+    return {"arm": name, "overrides": overrides, "step_seconds": step_s, "steps": steps,
+            "train_minutes": train_s / 60, "curve": curve, "test_ap50": figs["box_ap50"],
+            "test_ap": figs["box_ap"]}
+
+
+def yolo_arm(python: str, records: pathlib.Path, test: pathlib.Path, minutes: float,
+             out: pathlib.Path) -> dict:
+    from threept_jax.eval.bop_eval import evaluate_results_file
+
+    data = json.loads((records / "train" / "index.json").read_text())["sources"][0]["scenes"]
+    val = json.loads((records / "val" / "index.json").read_text())["sources"][0]["scenes"]
+    work = out / "yolo"
+    subprocess.run([python, str(ROOT / "bench" / "yolo_reference.py"), "--train", data,
+                    "--val", val, "--test", str(test / "val_pbr"), "--minutes", str(minutes),
+                    "--out", str(work)], check=True)
+    scores = evaluate_results_file(test, work / "detections.json", split="val_pbr")
+    box = scores["bbox"]
+    info = json.loads((work / "yolo.json").read_text())
+    return {"arm": "yolov8n", "train_minutes": info["train_seconds"] / 60,
+            "test_ap50": box["ap50"], "test_ap": box["ap"]}
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--records", type=pathlib.Path, default=ROOT / "runs/demo/adapted/records")
+    p.add_argument("--test", type=pathlib.Path, default=ROOT / "runs/demo/adapted/data/test",
+                   help="BOP dataset whose val_pbr images are the test images")
+    p.add_argument("--minutes", type=float, default=10.0)
+    p.add_argument("--arms", nargs="+", default=list(ARMS), choices=list(ARMS))
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="config overrides for every arm")
+    p.add_argument("--yolo-python", default=None,
+                   help="python of an environment with ultralytics (bench/yolo_reference.py)")
+    p.add_argument("--out", type=pathlib.Path, default=ROOT / "runs/bench/adapt_pace")
+    args = p.parse_args(argv)
+    from train.stages import log_friendly_progress
+
+    log_friendly_progress()
+    extra = dict(kv.split("=", 1) for kv in args.set)
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name in args.arms:
+        rows.append(train_arm(name, {**ARMS[name], **extra}, args.records, args.test,
+                              args.minutes, args.out))
+        (args.out / "results.json").write_text(json.dumps(rows, indent=1))
+    if args.yolo_python:
+        rows.append(yolo_arm(args.yolo_python, args.records, args.test, args.minutes, args.out))
+        (args.out / "results.json").write_text(json.dumps(rows, indent=1))
+    ref = rows[0]["test_ap50"]
+    print(f"\n{args.minutes:g} CPU minutes each, test images of {args.test}:")
+    print("| arm | steps | train min | val AP50 by eval | test box AP50 / AP | AP50 / first |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        curve = " / ".join(f"{c['val_ap50']:.3f}" for c in r.get("curve", []))
+        ratio = r["test_ap50"] / ref if ref > 0 else float("nan")
+        print(f"| {r['arm']} | {r.get('steps', '')} | {r['train_minutes']:.1f} | {curve} | "
+              f"{r['test_ap50']:.3f} / {r['test_ap']:.3f} | {ratio:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
