@@ -388,7 +388,6 @@ class RefinerConfig(_VariantSizes):
             layerscale_init=self.layerscale_init,
             attention_impl=self.attention_impl,
             remat=self.remat,
-            stem=self.stem,
             dtype=self.dtype,
             param_dtype=self.param_dtype,
         )
