@@ -233,6 +233,7 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
     assert run.checkpoint_steps()[-1] == budget["detector"]["steps"]
     model, cfg, step = load_detector(w)  # an ordinary run directory
     assert cfg.variant == "tiny/16" and step in run.checkpoint_steps()
+    assert cfg.stem == adapt.SCRATCH_STEM == "conv"  # from scratch: early convolutions
     # The refiner: an ordinary 3PT-R run on the same records, trained to its planned steps.
     refiner_run = RunDir(w / "refiner", model="refiner")
     assert (w / "refiner" / "refiner.json").exists()
