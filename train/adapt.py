@@ -211,8 +211,9 @@ def pack(data: pathlib.Path, records: pathlib.Path, render_size: int) -> None:
 
 #: The patch embedding of a detector adapted from scratch: early convolutions. At equal CPU
 #: minutes on the demo's cell (10 minutes, 2 cores) they took full-image test box AP50 from
-#: 0.008 to 0.055 (YOLOv8n from scratch: 0.183); ``bench/adapt_pace.py``, docs/training.md
-#: "Adapted 3PT-D against a standard detector". The configs themselves keep the plain ViT's.
+#: 0.008 to 0.055 (a second seed: 0.005 to 0.035; YOLOv8n from scratch: 0.183);
+#: ``bench/adapt_pace.py``, docs/training.md "Adapted 3PT-D against a standard detector". The
+#: configs themselves keep the plain ViT's.
 SCRATCH_STEM = "conv"
 
 
