@@ -81,7 +81,7 @@ def test_every_detector_field_can_be_set_from_the_config(monkeypatch):
         "tokens_per_view": 2, "embed_dim": 96, "num_registers": 4, "posemb": "sincos2d",
         "share_backbone": False, "attention_impl": "xla", "box_head_layers": 2,
         "presence_head_layers": 3, "class_prior": 0.05, "logit_scale_init": 5.0, "remat": True,
-        "dtype": "bfloat16", "param_dtype": "bfloat16",
+        "stem": "conv", "dtype": "bfloat16", "param_dtype": "bfloat16",
     }
     fields = [f.name for f in dataclasses.fields(DetectorConfig)]
     assert sorted(other) == sorted(fields), "give the new DetectorConfig field a test value"
