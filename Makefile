@@ -11,7 +11,7 @@ $(STAMP): pyproject.toml scripts/install.sh
 install: $(STAMP)
 
 test: $(STAMP)
-	$(PY) -m pytest -n 2 --dist loadscope -q tests
+	$(PY) -m pytest -n 2 --dist loadscope --no-loadscope-reorder -q tests
 
 demo: $(STAMP)
 	$(PY) -m demo

@@ -53,7 +53,9 @@ def bop_models_dir():
 
 
 #: Modules whose tests take minutes (compilations, training runs), marked ``slow`` (``pytest -m
-#: "not slow"`` is the quick loop) and scheduled first, so that the
+#: "not slow"`` is the quick loop) and scheduled first (``make test`` passes
+#: ``--no-loadscope-reorder``: xdist's default sends modules with the most tests first, which
+#: put these last and left one worker idle at the end), so that the
 #: two xdist workers run them side by side while the many short tests fill the gaps at the end
 #: (``make test`` groups each module on one worker, ``--dist loadscope``, so a module's compiled
 #: fixtures are built once).
