@@ -193,6 +193,19 @@ def test_wavefront_renders_equal_drjits_symbolic_renders_on_two_threads(monkeypa
     assert np.abs(wavefront["aux_normal"]).max() > 0.5  # the normals are there
 
 
+def test_only_small_renders_run_in_wavefront_mode_and_the_flags_come_back():
+    import drjit as dr
+
+    load_mitsuba()
+    flags = (dr.JitFlag.SymbolicCalls, dr.JitFlag.SymbolicLoops)
+    before = [dr.flag(f) for f in flags]
+    with mitsuba_backend._wavefront(mitsuba_backend.WAVEFRONT_MAX_LANES):
+        assert [dr.flag(f) for f in flags] == [False, False]
+    with mitsuba_backend._wavefront(mitsuba_backend.WAVEFRONT_MAX_LANES + 1):
+        assert [dr.flag(f) for f in flags] == before
+    assert [dr.flag(f) for f in flags] == before
+
+
 def _render_both_ways(monkeypatch):
     """One scene rendered in wavefront mode, then in symbolic mode: the outputs and the
     denoiser's inputs (colour, albedo, normal) of each."""

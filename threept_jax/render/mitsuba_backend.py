@@ -279,16 +279,22 @@ class MitsubaRenderer:
         T, K = T.reshape(-1, 4, 4), K.reshape(-1, 3, 3)
         H, W = int(hw[0]), int(hw[1])
         with self._lock:
-            with _wavefront():
+            with _wavefront(len(T) * H * W):
                 res = _cast(self.mi, self._scene, T, K, (H, W), near, _fields(outputs))
         thr = edge_depth_fraction * self.mesh.diameter
         out = _finish(res, outputs, K, (H, W), ambient, thr, edge_angle_deg)
         return {k: v.reshape(lead + v.shape[1:]) for k, v in out.items()}
 
 
-@contextlib.contextmanager
-def _wavefront():
-    """Dr.Jit's wavefront mode for the renders inside (the flags are per thread, and restored).
+#: Renders of at most this many lanes (pixels x samples per pixel) run in Dr.Jit's wavefront
+#: mode (:func:`_wavefront`); larger ones in its symbolic mode, where the path state stays in
+#: registers (640 x 480 at 16 spp: 21 s and 3.6 GB wavefront against 3.2 s and 0.6 GB).
+WAVEFRONT_MAX_LANES = 1 << 20
+
+
+def _wavefront(lanes: int):
+    """Dr.Jit's wavefront mode for a render of ``lanes`` lanes, when it is small enough
+    (:data:`WAVEFRONT_MAX_LANES`); the flags are per thread, and restored.
 
     In its default (symbolic) mode Dr.Jit compiles a whole path tracer into one kernel that
     holds, as code and constants, every BSDF, emitter and shape alive in the process, the
@@ -296,16 +302,20 @@ def _wavefront():
     of parts, materials and lights, compiled a new kernel with LLVM (0.5-1.3 s each on 2 cores),
     and Dr.Jit's kernel cache (``~/.drjit``) never hit for new scenes. With virtual calls and
     loops evaluated step by step, the kernels are small and shared by every scene, and the
-    renders are bit-identical to the symbolic mode's (tests/render/test_mitsuba_scene.py).
-    Measured on 2 cores with an empty cache: the learning test's 48 images at 160 x 128,
-    103-106 s -> 47.5 s; 8 demo cell images at 640 x 480, 37.3 -> 26.4 s (docs/datagen.md,
-    "Rendering speed").
+    renders are bit-identical to the symbolic mode's (tests/render/test_mitsuba_scene.py), so
+    the choice changes speed only. Measured on 2 cores with an empty cache: the learning test's
+    48 images at 160 x 128, 103-106 s -> 47.5 s; 8 demo cell images at 640 x 480, 37.3 ->
+    26.4 s (docs/datagen.md, "Rendering speed"). But every step's state goes through memory,
+    which large renders pay for.
     """
     import drjit as dr
 
-    with dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False), \
-            dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, False):
-        yield
+    if lanes > WAVEFRONT_MAX_LANES:
+        return contextlib.nullcontext()
+    stack = contextlib.ExitStack()
+    stack.enter_context(dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False))
+    stack.enter_context(dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, False))
+    return stack
 
 
 def _cast(mi, scene, T, K, hw, near, fields, shape_table=None):
@@ -685,7 +695,7 @@ class MitsubaScene:
             K_sq, hw_sq, box = square_pixel_camera(K, hw)
         sensor = mi.load_dict(_sensor_dict(mi, K_sq, T, hw_sq))
         integrator = self._aov_integrator if denoise else None  # None: the scene's path tracer
-        with _wavefront():
+        with _wavefront(hw_sq[0] * hw_sq[1] * int(spp)):
             img = np.array(mi.render(self._scene, sensor=sensor, integrator=integrator,
                                      spp=int(spp), seed=int(seed)), np.float32)
         if denoise:  # channels: colour, then the AOVs in the order named in _build (normal, albedo)
@@ -700,7 +710,7 @@ class MitsubaScene:
     def _geometry(self, K, T, hw, near, outputs):
         fields = {"instance"} | ({"p"} if "xyz" in outputs else set())
         fields |= {"n"} if "normal" in outputs else set()
-        with _wavefront():
+        with _wavefront(hw[0] * hw[1]):
             res = _cast(self.mi, self._scene, T[None], K[None], hw, near, fields, self._table)
         inst = np.where(res["valid"], res["instance"], 0).astype(np.int32)[0]
         hit = inst > 0
