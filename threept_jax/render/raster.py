@@ -235,14 +235,14 @@ def rasterize(
     Args:
       hw: (H, W) image size.
       tile: window side in pixels (static); any value is exact, it only changes speed.
-      chunk: windows in the first pass (static, default 1.25 B Fp); memory is chunk x tile^2
-        keys.
+      chunk: windows per pass (static, default 1.25 B Fp); memory is chunk x tile^2 keys.
       near: near-plane depth in mm; surfaces at z <= near are clipped.
 
     Windows of visible triangles are listed by a prefix sum over their counts (culled and
-    off-screen triangles take none); the first ``chunk`` windows are rasterized in one pass,
-    any beyond (large triangles, close-ups) in a ``while_loop`` over chunks of ``chunk // 4``
-    that runs zero times in the common case.
+    off-screen triangles take none) and rasterized ``chunk`` at a time by one ``while_loop``,
+    which runs once in the common case and again only for large triangles and close-ups. One
+    loop body, so XLA compiles the pass once (a first pass outside the loop cost a second
+    copy: a third of the renderer's compile time).
     """
     H, W = hw
     B = R.shape[0]
@@ -250,7 +250,7 @@ def rasterize(
     ib, db = _id_bits(F)
     tri, box, tiles = _setup(mesh, R, t, K, inv_intrinsics(K), hw, near, tile)
     BF = B * F
-    # The first pass holds 1.25 windows per (view, face): every visible triangle of a prepared
+    # A pass holds 1.25 windows per (view, face): every visible triangle of a prepared
     # mesh, culled or not, in the common case.
     C = int(chunk) if chunk is not None else BF + BF // 4
     Hp, Wp = H + tile, W + tile  # z-buffer padded so every window stays in bounds
@@ -292,13 +292,10 @@ def rasterize(
         it = items(tri[:, owner], box[:, owner], owner, w - start[owner], w < total)
         return _scatter_windows(zbuf, *it, **kw)
 
-    zbuf = run(jnp.full((B * Hp * Wp,), INT_MAX, jnp.int32), jnp.int32(0), C)
-    # Work beyond the first chunk (large triangles, close-ups) runs in smaller chunks.
-    C2 = max(C // 4, 1)
     _, zbuf = lax.while_loop(
-        lambda s: C + s[0] * C2 < total,
-        lambda s: (s[0] + 1, run(s[1], C + s[0] * C2, C2)),
-        (jnp.int32(0), zbuf),
+        lambda s: s[0] * C < total,
+        lambda s: (s[0] + 1, run(s[1], s[0] * C, C)),
+        (jnp.int32(0), jnp.full((B * Hp * Wp,), INT_MAX, jnp.int32)),
     )
     zbuf = zbuf.reshape(B, Hp, Wp)[:, :H, :W]
     return Fragments(face=jnp.where(zbuf == INT_MAX, -1, zbuf & ((1 << ib) - 1)), tri=tri)
