@@ -20,6 +20,7 @@ each); steps 2-4 run once per mode.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Sequence
 
 import jax
@@ -169,6 +170,21 @@ def detection_function(graphdef: nnx.GraphDef, layout: pns.TileLayout,
     return run
 
 
+def _layout(image_hw, tile_size, scales, num_scales, object_sizes) -> pns.TileLayout:
+    if scales:
+        return pns.tile_layout(image_hw, tile_size, scales)
+    return pns.plan_layout(image_hw, tile_size, object_sizes=object_sizes, num_scales=num_scales)
+
+
+@functools.lru_cache(maxsize=32)
+def _jitted(graphdef, settings, image_hw, tile_size, scales, num_scales, object_sizes,
+            jit_items):
+    """The jitted :func:`detection_function` of one model structure (``GraphDef``s compare by
+    value), settings and tile layout, shared by every :class:`FullImageDetector`."""
+    layout = _layout(image_hw, tile_size, scales, num_scales, object_sizes)
+    return jax.jit(detection_function(graphdef, layout, settings), **dict(jit_items))
+
+
 jax.tree_util.register_dataclass(
     ObjectQueries, data_fields=["prior_tokens", "template_bank", "template_rotations", "points"],
     meta_fields=[])
@@ -180,7 +196,9 @@ class FullImageDetector:
     ``scales``: pan-and-scan scales; None: planned per image by ``pan_and_scan.plan_layout``
     (``num_scales`` of them, or the fewest that cover the expected object sizes).
     ``jit_kwargs`` go to ``jax.jit`` (the training evaluation replicates the outputs over its
-    device mesh).
+    device mesh). The jitted functions are shared by every detector of the process with the
+    same model structure, tiles and settings (:func:`_jitted`): a new detector of the same
+    model (another ``infer`` run, adapt's val then test scenes) compiles nothing again.
     """
 
     def __init__(self, graphdef: nnx.GraphDef, tile_size: int, settings: DetectionSettings, *,
@@ -192,28 +210,21 @@ class FullImageDetector:
         self.num_scales = None if num_scales is None else int(num_scales)
         self.scales = None if scales is None else tuple(float(v) for v in scales)
         self.jit_kwargs = dict(jit_kwargs or {})
-        self._fns: dict[tuple, object] = {}
 
     def layout(self, image_hw: tuple[int, int],
                object_sizes: tuple[float, float] | None = None) -> pns.TileLayout:
         """The tiles of an image: ``scales`` if given, else planned for the objects' expected
         sizes in pixels (``pan_and_scan.plan_layout``; None: 64 px to the whole image)."""
-        if self.scales:
-            return pns.tile_layout(image_hw, self.tile_size, self.scales)
-        return pns.plan_layout(image_hw, self.tile_size, object_sizes=object_sizes,
-                               num_scales=self.num_scales)
+        return _layout(image_hw, self.tile_size, self.scales, self.num_scales, object_sizes)
 
     def compiled(self, image_hw: tuple[int, int],
                  object_sizes: tuple[float, float] | None = None):
         """The jitted function for one image size and expected object sizes, built once (the
         layout is planned only then, not per image)."""
-        image_hw = (int(image_hw[0]), int(image_hw[1]))
-        key = (image_hw, None if object_sizes is None else tuple(map(float, object_sizes)))
-        if key not in self._fns:
-            fn = detection_function(self.graphdef, self.layout(image_hw, object_sizes),
-                                    self.settings)
-            self._fns[key] = jax.jit(fn, **self.jit_kwargs)
-        return self._fns[key]
+        return _jitted(self.graphdef, self.settings, (int(image_hw[0]), int(image_hw[1])),
+                       self.tile_size, self.scales, self.num_scales,
+                       None if object_sizes is None else tuple(map(float, object_sizes)),
+                       tuple(sorted(self.jit_kwargs.items())))
 
     def __call__(self, params, image, K, queries: ObjectQueries,
                  object_sizes: tuple[float, float] | None = None) -> dict[str, dict[str, Array]]:
