@@ -208,11 +208,15 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
     # The test stage's refinement at the BOP runner tests' size (its loop is tested elsewhere).
     monkeypatch.setattr(api, "SceneRefiner", plumbing_scene_refiner())
     monkeypatch.setattr(adapt, "measure_step_seconds", lambda c: STEP_SECONDS[c.trainer])
+    # Two evaluations per run, not four: each trains 3 steps between them (the
+    # trainers' tests cover every evaluation; at this module's unoptimised compilation a
+    # detector step takes about a second).
+    monkeypatch.setattr(adapt, "NUM_EVALS", 2)
     w = tmp_path / "w"
-    argv = ["--meshes", "procedural:2", "--seed", "3", "--workdir", str(w), "--minutes", "0.15",
+    argv = ["--meshes", "procedural:2", "--seed", "3", "--workdir", str(w), "--minutes", "0.03",
             "--config", "tiny", "--train-scenes", "4", "--test-scenes", "1", "--resolution",
             "96", "80", "--spp", "1", "--instances", "3", "--overlays", "1",
-            "--refiner-minutes", "0.06", "--from", "scratch"]
+            "--refiner-minutes", "0.04", "--from", "scratch"]
     report = adapt.main(argv)
 
     # Three disjoint scene sets of the same parts: val and test are shards of one held-out set.
@@ -222,13 +226,14 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
     assert scenes["val"] and scenes["test"] and not set(scenes["val"]) & set(scenes["test"])
     # The budgets: the steps that fit 85% of each model's minutes at its measured step time.
     budget = json.loads((w / "adapt.json").read_text())
-    for name, minutes in (("detector", 0.15), ("refiner", 0.06)):
+    for name, minutes in (("detector", 0.03), ("refiner", 0.04)):
         entry = budget[name]
         assert entry["steps"] == max(adapt.NUM_EVALS, int(minutes * 60 * (1 - adapt.EVAL_SHARE)
                                                           / entry["step_seconds"]))
         assert entry["minutes"] == minutes and entry["config"] == "tiny"
-    assert budget["refiner"] == {"steps": 6, "step_seconds": STEP_SECONDS["refiner"],
-                                 "minutes": 0.06, "config": "tiny"}  # int(0.06 * 51 / 0.5)
+    assert budget["detector"]["steps"] == 7  # int(0.03 * 51 / 0.2)
+    assert budget["refiner"] == {"steps": 4, "step_seconds": STEP_SECONDS["refiner"],
+                                 "minutes": 0.04, "config": "tiny"}  # int(0.04 * 51 / 0.5)
     run = RunDir(w)
     assert run.checkpoint_steps()[-1] == budget["detector"]["steps"]
     model, cfg, step = load_detector(w)  # an ordinary run directory
