@@ -33,6 +33,6 @@ def test_summary_sums_by_program_and_counts_repeats_after_the_first(tmp_path):
     out = subprocess.run([sys.executable, str(LOG / "summary.py"), str(tmp_path)],
                          capture_output=True, text=True, check=True, timeout=60).stdout
     assert "6.6 s of XLA compilation in 4 compilations" in out
-    assert "     5.1     3  jit_a" in out and "     3.0     2  t/n.py" in out
+    assert "     5.1     3  jit_a" in out and "     3.1     2  t/n.py" in out
     # jit_a with options o ran twice: 3.0 s after the first; with p once (not a repeat).
     assert "repeated programs: 3.0 s" in out
