@@ -17,8 +17,13 @@ def main() -> None:
     args = p.parse_args()
     rows = []
     for f in sorted(args.folder.glob("*.tsv")):
-        for line in f.read_text().splitlines():
-            start, seconds, text, options, name, test = line.split("\t")
+        for i, line in enumerate(f.read_text().splitlines(), 1):
+            fields = line.split("\t")
+            if len(fields) != 6:
+                raise SystemExit(f"{f}:{i}: not a line of scripts/compile_log/sitecustomize.py "
+                                 f"(6 tab-separated fields, got {len(fields)}); point at the "
+                                 "folder of THREEPT_COMPILE_LOG")
+            start, seconds, text, options, name, test = fields
             rows.append((float(seconds), text, options, name, test.split("::")[0], f.stem))
     if not rows:
         raise SystemExit(f"no compile log in {args.folder} (*.tsv)")

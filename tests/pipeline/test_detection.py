@@ -70,3 +70,18 @@ def test_several_modes_share_one_forward_without_changing_any():
     # The modes rank differently: presence alone and the product do not pick the same list.
     assert not np.allclose(np.asarray(out["presence"]["scores"]),
                            np.asarray(out["product"]["scores"]))
+
+
+def test_detectors_of_one_model_structure_share_their_compiled_function():
+    """Two models of one config (other weights) give equal GraphDefs: their detectors share the
+    jitted function of an image size; other settings, tiles or sizes get their own."""
+    cfg = DetectorConfig(variant="tiny/16", image_size=64, render_size=32)
+    (g0, _), (g1, _) = (nnx.split(Detector(cfg, rngs=nnx.Rngs(s))) for s in (0, 1))
+    a = FullImageDetector(g0, 64, DetectionSettings(), num_scales=2)
+    b = FullImageDetector(g1, 64, DetectionSettings(), num_scales=2)
+    assert a.compiled((64, 96)) is b.compiled((64, 96))
+    others = [FullImageDetector(g1, 64, DetectionSettings(max_detections=7), num_scales=2),
+              FullImageDetector(g1, 64, DetectionSettings(), num_scales=3)]
+    assert all(o.compiled((64, 96)) is not a.compiled((64, 96)) for o in others)
+    assert a.compiled((64, 128)) is not a.compiled((64, 96))
+    assert a.compiled((64, 96), (20.0, 40.0)) is not a.compiled((64, 96))

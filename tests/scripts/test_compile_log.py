@@ -36,3 +36,11 @@ def test_summary_sums_by_program_and_counts_repeats_after_the_first(tmp_path):
     assert "     5.1     3  jit_a" in out and "     3.1     2  t/n.py" in out
     # jit_a with options o ran twice: 3.0 s after the first; with p once (not a repeat).
     assert "repeated programs: 3.0 s" in out
+
+
+def test_summary_refuses_a_file_that_is_not_a_compile_log(tmp_path):
+    (tmp_path / "7.tsv").write_text("0\t2.0\tjit_a\n")
+    proc = subprocess.run([sys.executable, str(LOG / "summary.py"), str(tmp_path)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1 and "7.tsv:1: not a line of" in proc.stderr
+    assert "Traceback" not in proc.stderr
