@@ -59,8 +59,8 @@ __all__ = ["Camera", "Models", "TrackedFrame", "load", "run_scene", "refine", "t
 #: 3PT-D network (a training run, or the shipped one), and "templates", the training-free shape
 #: search from the CAD model alone (:mod:`infer.shape_detect`).
 DETECTORS = ("3pt", "templates")
-#: Each detector's default score threshold: they score on different scales (3PT-D a detection
-#: probability, the templates detector a contour score).
+#: Each detector's default score threshold: both score a probability, calibrated on different
+#: data (a noisy featureless image's template candidates score up to 0.35).
 SCORE_THRESHOLDS = {"3pt": DETECTOR_SCORE_THRESHOLD, "templates": TEMPLATES_SCORE_THRESHOLD}
 
 

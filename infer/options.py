@@ -110,8 +110,8 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
                         "3 for a 640x480 image without --depth-range)")
     p.add_argument("--score-threshold", type=fraction, default=None,
                    help="keep detections scoring above this, in [0, 1] (default: 0.4 with the "
-                        "templates detector, whose contour score of a noisy featureless image "
-                        "is 0.2-0.35; 0.1 with 3PT-D)")
+                        "templates detector, whose candidates on a noisy featureless image "
+                        "score up to 0.35; 0.1 with 3PT-D)")
     p.add_argument("--max-detections", type=int_at_least(1), default=100, help="per image")
     p.add_argument("--cache-dir", type=pathlib.Path, default=DEFAULT_CACHE,
                    help="onboarding and compilation cache (env THREEPT_CACHE)")
@@ -153,7 +153,7 @@ def detector_kind(args) -> str:
 
 def default_score_threshold(args) -> None:
     """Set ``--score-threshold`` when not given to the default of the command's detector (the
-    two score on different scales: a contour score and a detection probability)."""
+    two probabilities are calibrated on different data)."""
     if hasattr(args, "score_threshold") and args.score_threshold is None:
         args.score_threshold = SCORE_THRESHOLDS[detector_kind(args)]
 

@@ -3,10 +3,13 @@
 :class:`ShapeSearchDetector` has the interface of :class:`infer.detect.SceneDetector`
 (``objects``, ``detect(image, K)`` -> :class:`infer.detect.Detections`) and needs no network:
 selective-search proposals, each part's contour templates fitted to each proposal, the best
-poses refined and scored by the contour refiner
-(:mod:`threept_jax.pipeline.shape_search`). Its detections carry a refined pose, so the
-render-and-compare stage (the contour refiner by default) starts where the search ended; its
-score is the contour score in [0, 1] (held-out medians in docs/benchmarks.md).
+poses refined by the contour refiner (:mod:`threept_jax.pipeline.shape_search`). Its
+detections carry a refined pose, so the render-and-compare stage (the contour refiner by
+default) starts where the search ended; its score is the probability that the detection is
+right (its part, box IoU >= 0.5), a logistic model of the candidate's contour and template
+scores and its outline's shape and surroundings
+(:func:`~threept_jax.pipeline.shape_search.calibrated_score`, fitted by ``python -m
+train.templates_score`` on cells of parts no evaluation uses).
 
 Building it renders each mesh's contour views once (the contour refiner's cache under
 ``cache_dir``, a few seconds per mesh on 2 CPU cores); the first image of a size compiles the
@@ -18,6 +21,7 @@ from __future__ import annotations
 import os
 import pathlib
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import cv2
 import jax
@@ -30,8 +34,10 @@ from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.pipeline.contour import stack_contours
 from threept_jax.pipeline.shape_search import (
     ShapeSearchSettings,
+    calibrated_score,
     fit_templates,
     orientation_response,
+    outline_features,
     poses_from_fit,
     proposals,
     select_candidates,
@@ -43,18 +49,29 @@ from threept_jax.pipeline.shape_search import (
 #: Without a depth range, objects are searched from this projected diameter (px) to the image's
 #: longer side.
 MIN_DIAMETER_PX = 32.0
-#: Default contour score a detection must exceed. A dark or grey image with sensor noise (sigma
-#: 3-8 grey levels) or uniform noise gives 50-60 detections scoring 0.2-0.35, right detections
-#: on the held-out cells score 0.6-0.9 (docs/benchmarks.md); evaluations pass 0 (AP ranks
-#: every detection).
+#: Default score (a probability) a detection must exceed. A dark or grey image with sensor noise
+#: (sigma 3-8 grey levels) or uniform noise gives candidates scoring 0.08-0.35; on the held-out
+#: cells 65 % of the verified candidates above 0.4 are right (docs/benchmarks.md); evaluations
+#: pass 0 (AP ranks every detection).
 SCORE_THRESHOLD = 0.4
+
+
+class Candidates(NamedTuple):
+    """Verified candidates of one image, before scoring and NMS: refined poses [n, 4, 4]
+    T_cam_obj, ``obj`` [n] (rows of the detector's ``objects``), outline boxes ``xyxy`` [n, 4]
+    and :data:`~threept_jax.pipeline.shape_search.FEATURES` [n, F]."""
+
+    poses: np.ndarray
+    obj: np.ndarray
+    xyxy: np.ndarray
+    features: np.ndarray
 
 
 class ShapeSearchDetector:
     """Detects objects (anything with ``obj_id`` and ``mesh``, mm) by shape search (module
     docstring). ``depth_range``: (zmin, zmax) mm of the objects' centres from the camera (a
     cell's ``cell.json``); None: any distance at which an object appears 32 px to the image's
-    size. ``score_threshold``: contour score a detection must exceed (:data:`SCORE_THRESHOLD`);
+    size. ``score_threshold``: score a detection must exceed (:data:`SCORE_THRESHOLD`);
     ``max_detections`` per image."""
 
     def __init__(self, objects: Sequence, *, depth_range: tuple[float, float] | None = None,
@@ -90,9 +107,10 @@ class ShapeSearchDetector:
         d = self.diameters[o]
         return np.array([f * d / max(hw), f * d / MIN_DIAMETER_PX], np.float32)
 
-    def detect(self, image: np.ndarray, K: np.ndarray) -> Detections:
-        """Detections in one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3] (pixels of
-        this image), best first; ``best_score`` is the best contour score of any candidate."""
+    def candidates(self, image: np.ndarray, K: np.ndarray) -> Candidates | None:
+        """The verified candidates of one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3]
+        (pixels of this image), before scoring and NMS; None when there are none (no
+        proposal, no outline)."""
         image = np.asarray(image)
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise ValueError(f"image must be uint8 RGB [H, W, 3], got {image.dtype} "
@@ -102,7 +120,7 @@ class ShapeSearchDetector:
         s = self.settings
         boxes = proposals(image, s)
         if not len(boxes) or self._empty.all():
-            return Detections()
+            return None
         # A fixed proposal count: one compiled fit per image size.
         padded = np.zeros((s.max_proposals, 4), np.float32)
         padded[:, 2:] = 1.0
@@ -126,18 +144,31 @@ class ShapeSearchDetector:
                                    z[ok].astype(np.float64), c[ok].astype(np.float64), K)
             found += [(float(a), int(o), p) for a, p in zip(sc[ok], poses)]
         if not found:
+            return None
+        template, obj, poses = (np.array(a) for a in zip(*found))
+        chosen = select_candidates(template, obj, s.candidates)
+        n = len(chosen)
+        # A fixed candidate count: one compiled verification per image size.
+        pad = np.concatenate([chosen, np.full(s.candidates - n, chosen[0])])
+        template, poses, obj = template[pad], poses[pad], obj[pad].astype(np.int32)
+        K32 = jnp.asarray(K, jnp.float32)
+        refined, contour, xyxy, lines = verify(
+            self.model, jnp.asarray(image), K32, jnp.asarray(poses, jnp.float32),
+            jnp.asarray(obj), settings=s.contour, lines=s.lines)
+        features = outline_features(self.model, response, K32, refined, jnp.asarray(obj),
+                                    contour, jnp.asarray(template, jnp.float32), lines)
+        refined, xyxy, features = (np.asarray(a)[:n] for a in (refined, xyxy, features))
+        return Candidates(refined, obj[:n], xyxy, features)
+
+    def detect(self, image: np.ndarray, K: np.ndarray) -> Detections:
+        """Detections in one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3] (pixels of
+        this image), best first; ``best_score`` is the best score of any candidate."""
+        c = self.candidates(image, K)
+        if c is None:
             return Detections()
-        found = [found[i] for i in select_candidates(
-            np.array([a for a, _, _ in found]), np.array([o for _, o, _ in found]),
-            s.candidates)]
-        n = len(found)
-        poses = np.stack([p for _, _, p in found] + [found[0][2]] * (s.candidates - n))
-        obj = np.array([o for _, o, _ in found] + [found[0][1]] * (s.candidates - n), np.int32)
-        refined, scores, xyxy = jax.device_get(verify(
-            self.model, jnp.asarray(image), jnp.asarray(K, jnp.float32),
-            jnp.asarray(poses, jnp.float32), jnp.asarray(obj), settings=s.contour,
-            lines=s.lines))
-        refined, scores, xyxy, obj = refined[:n], scores[:n], xyxy[:n], obj[:n]
+        s = self.settings
+        scores = np.asarray(calibrated_score(c.features))
+        refined, obj, xyxy = c.poses, c.obj, c.xyxy
         finite = np.isfinite(scores) & np.isfinite(xyxy).all(1)
         order = [i for i in np.argsort(-np.where(finite, scores, -np.inf)) if finite[i]]
         xywh = [[float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])]

@@ -114,12 +114,12 @@ def test_templates_of_a_box_seen_along_its_axis_have_its_extent():
     np.testing.assert_allclose(e0, e1[::-1], atol=1.0)
 
 
-def _render(meshes_poses, background, seed=0):
+def _render(meshes_poses, background, intrinsics=K):
     """uint8 image of meshes at T_cam_obj poses (nearest wins) over ``background`` [H, W, 3]."""
     img = background.astype(np.float32) / 255.0
     depth = np.full(HW, np.inf)
     for mesh, T in meshes_poses:
-        out = render(to_raster_mesh(mesh), T.astype(np.float32), K.astype(np.float32), HW,
+        out = render(to_raster_mesh(mesh), T.astype(np.float32), intrinsics.astype(np.float32), HW,
                      ("rgb", "mask", "depth"), ambient=0.6)
         m = np.asarray(out["mask"]) & (np.asarray(out["depth"]) < depth)
         img[m] = np.asarray(out["rgb"])[m]
@@ -326,3 +326,94 @@ def test_images_command_with_the_templates_detector(scene, tmp_path, capsys, mon
               str(tmp_path / "out2"), *args])
     assert e.value.code == 2
     assert "drop one of them" in capsys.readouterr().err
+
+
+def _perimeter_covariance(polygon):
+    """[2, 2] covariance of points spread evenly along a closed polygon's perimeter [k, 2]: the
+    line integral of x x^T over each side, L (p p^T / 3 + (p q^T + q p^T) / 6 + q q^T / 3)."""
+    p, q = polygon, np.roll(polygon, -1, 0)
+    L = np.linalg.norm(q - p, axis=1)
+    mean = np.sum(L[:, None] * (p + q) / 2, 0) / L.sum()
+    p, q = p - mean, q - mean
+    second = sum(li * (np.outer(a, a) / 3 + (np.outer(a, b) + np.outer(b, a)) / 6
+                       + np.outer(b, b) / 3) for li, a, b in zip(L, p, q))
+    return second / L.sum()
+
+
+def test_outline_features_of_a_plate_against_its_projected_corners():
+    """A 50 x 50 x 2 mm plate seen face-on, edge-on and obliquely from three of its stored
+    views, far away (nearly orthographic): thinness and elongation against the convex hull of
+    its 8 projected corners (its silhouette), the size against its bounding sphere, the LINE-2D
+    similarity near 1 on its own render and 0 on a grey image, the clutter in its box small on
+    the render (its face is flat) and 0 on the grey image; the given scores pass through."""
+    from scipy.spatial import ConvexHull
+
+    from threept_jax.geometry.grids import viewpoint_rotation
+
+    plate = _box_mesh((50.0, 50.0, 2.0))
+    contours = C.mesh_contours(plate, num_views=100, num_points=200)
+    model = C.stack_contours([contours])
+    dirs = contours["directions"]
+    views = [int(np.argmax(dirs[:, 2])), int(np.argmin(np.abs(dirs[:, 2]))), 37]
+    Kf = np.array([[5000.0, 0, 159.5], [0, 5000.0, 119.5], [0, 0, 1]])
+    corners = np.array(trimesh.creation.box((50.0, 50.0, 2.0)).vertices)
+    poses = []
+    for v in views:
+        T = np.eye(4)
+        T[:3, :3] = viewpoint_rotation(dirs[v])
+        T[:3, 3] = [0.0, 0.0, 5000.0]
+        poses.append(T)
+    poses = np.stack(poses)
+    n = len(views)
+    given = np.linspace(0.2, 0.6, n)
+    img = _render([(plate, poses[0])], np.full(HW + (3,), 90, np.uint8), Kf)
+    out = {}
+    for name, image in (("render", img), ("grey", np.full(HW + (3,), 128, np.uint8))):
+        out[name] = np.asarray(S.outline_features(
+            model, jnp.asarray(S.orientation_response(image)), jnp.asarray(Kf, jnp.float32),
+            jnp.asarray(poses, jnp.float32), jnp.zeros(n, jnp.int32),
+            jnp.asarray(given, jnp.float32), jnp.asarray(given + 0.1, jnp.float32),
+            jnp.asarray(given + 0.2, jnp.float32)))
+    f = out["render"]
+    col = {k: i for i, k in enumerate(S.FEATURES)}
+    np.testing.assert_allclose(f[:, col["contour"]], given, atol=1e-6)
+    np.testing.assert_allclose(f[:, col["template"]], given + 0.1, atol=1e-6)
+    np.testing.assert_allclose(f[:, col["lines"]], given + 0.2, atol=1e-6)
+    radius = float(contours["radius"])
+    np.testing.assert_allclose(f[:, col["size"]], np.log(2 * radius), rtol=1e-4)
+    for i, T in enumerate(poses):
+        X = corners @ T[:3, :3].T + T[:3, 3]
+        uv = X[:, :2] / X[:, 2:] * 5000.0
+        hull = uv[ConvexHull(uv).vertices]
+        ev = np.linalg.eigvalsh(_perimeter_covariance(hull))
+        np.testing.assert_allclose(f[i, col["thinness"]], np.sqrt(ev[0]) / radius, atol=0.03)
+        np.testing.assert_allclose(f[i, col["elongation"]], np.sqrt(ev[0] / ev[1]), atol=0.03)
+    assert f[0, col["elongation"]] > 0.9 and f[1, col["elongation"]] < 0.3  # face-on, edge-on
+    # Only the face-on plate was rendered: its outline lies on the image's edges, inside its
+    # box only its flat face (edges within the 1 px spread of its border).
+    assert f[0, col["line2d"]] > 0.8
+    assert 0.0 < f[0, col["clutter"]] < 0.3
+    np.testing.assert_allclose(out["grey"][:, [col["line2d"], col["clutter"]]], 0.0)
+
+
+def test_score_weights_are_recovered_from_a_known_logistic_model():
+    """Candidates drawn from a logistic model with known weights: the fit returns them (within
+    a few standard errors at 40000 draws) and ``calibrated_score`` is that model's
+    probability, checked by hand on one row."""
+    rng = np.random.default_rng(3)
+    n = 40000
+    f = np.column_stack([rng.uniform(0.05, 0.95, (n, 3)), rng.uniform(0.5, 1.0, n),
+                         rng.uniform(0.0, 0.6, n), rng.uniform(0.1, 1.0, n),
+                         rng.uniform(3.0, 6.0, n), rng.uniform(0.0, 0.8, n)])
+    w = np.array([0.8, -0.4, 1.2, 2.0, 3.0, -1.0, 0.5, -2.0, -3.0])
+    logit = lambda p: np.log(p / (1 - p))  # noqa: E731
+    z = (w[0] * logit(f[:, 0]) + w[1] * logit(f[:, 1]) + w[2] * logit(f[:, 2])
+         + f[:, 3:] @ w[3:8] + w[8])
+    right = rng.random(n) < 1 / (1 + np.exp(-z))
+    got = S.fit_score_weights(f, right, l2=0.0)
+    np.testing.assert_allclose(got[:-1], w[:-1], atol=0.25)
+    np.testing.assert_allclose(got[-1], w[-1], atol=0.6)  # inputs far from 0: a wider error
+    np.testing.assert_allclose(S.calibrated_score(f[:100], got), 1 / (1 + np.exp(-z[:100])),
+                               atol=0.05)
+    row = np.array([[0.5, 0.5, 0.5, 1.0, 0.0, 1.0, 0.0, 0.5]])  # z = 2 - 1 - 1 - 3
+    np.testing.assert_allclose(S.calibrated_score(row, w), [1 / (1 + np.exp(3.0))], rtol=1e-9)

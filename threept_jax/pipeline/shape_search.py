@@ -2,7 +2,7 @@
 proposal, verification by the contour score.
 
 Nothing here is learned; a part is found from its CAD model alone (issue 37's baseline, the one
-every learned detector must beat). Three stages per image:
+every learned detector must beat). Four stages per image:
 
 1. **Proposals** (:func:`proposals`): OpenCV's selective search (Uijlings et al., IJCV 2013;
    ``cv2.ximgproc``, the "fast" strategy on the image at half size): class-agnostic boxes of
@@ -18,9 +18,14 @@ every learned detector must beat). Three stages per image:
    ``per_proposal`` templates per proposal, proposals thinned by NMS.
 3. **Verification** (:func:`verify`): ``candidates`` poses of the image, an equal share per
    part (:func:`select_candidates`), are refined by the contour refiner
-   (:func:`threept_jax.pipeline.contour.refine_poses`) and scored by its contour score (the
-   posterior mass of the outline on the image's region boundary, in [0, 1]); the refined
-   poses' boxes are merged by NMS across parts (one part per place).
+   (:func:`threept_jax.pipeline.contour.refine_poses`, its contour score: the posterior mass
+   of the outline on the image's region boundary, in [0, 1]).
+4. **Score** (:func:`calibrated_score`): the probability that a candidate is right, a logistic
+   model of :func:`outline_features` (contour and template scores, the outline's LINE-2D
+   similarity, thinness, elongation, size and the clutter around it) whose
+   :data:`SCORE_WEIGHTS` were fitted on cells of other parts (``python -m
+   train.templates_score``); the refined poses' boxes are merged by NMS across parts (one
+   part per place).
 
 Shapes: O objects, R templates per object (views x in-plane turns), n outline points per
 template, B proposals, k templates kept per proposal.
@@ -265,12 +270,120 @@ def outline_boxes(model: ContourModel, poses: Array, obj: Array, K: Array) -> Ar
     return jax.vmap(one)(poses, obj)
 
 
+#: Features of a verified detection (:func:`outline_features`), in this order.
+FEATURES = ("contour", "template", "line2d", "lines", "thinness", "elongation", "size",
+            "clutter")
+
+
+@jax.jit
+def outline_features(model: ContourModel, response: Array, K: Array, poses: Array, obj: Array,
+                     contour: Array, template: Array, lines: Array) -> Array:
+    """[P, len(FEATURES)] what a detection's score is calibrated from (:data:`FEATURES`):
+    its contour score and template score (given), the LINE-2D similarity of its full outline
+    (the nearest stored view's points at poses [P, 4, 4]) with ``response``, the share of its
+    correspondence lines that were valid (``lines``, :func:`verify`'s), and the
+    outline's shape in the image: thinness (the spread across its main axis, sqrt of the
+    smaller eigenvalue of the points' covariance, over the projected radius of the part's
+    bounding sphere), elongation (sqrt of the smaller over the larger eigenvalue) and size
+    (log of the projected diameter in px), and the clutter inside its box: the mean response
+    over the box and the orientation bins, the similarity any outline would reach there by
+    chance (a contrario: a similarity counts for less where every orientation is
+    everywhere). Few-line outlines (a plate seen edge-on, a pin) fit clutter; the share of
+    good outlines among the candidates of each shape differs."""
+    H, W = response.shape[1:]
+    # Summed-area table of the mean response: a box's mean in four lookups.
+    table = jnp.pad(jnp.cumsum(jnp.cumsum(jnp.mean(response, 0), 0), 1), ((1, 0), (1, 0)))
+
+    def one(T, o):
+        R, t = T[:3, :3], T[:3, 3]
+        d = -R.T @ t - model.center[o]
+        v = jnp.argmax(model.directions[o] @ (d / jnp.maximum(jnp.linalg.norm(d), 1e-9)))
+        X = model.points[o, v] @ R.T + t
+        f = jnp.stack([K[0, 0], K[1, 1]])
+        uv = X[:, :2] / jnp.maximum(X[:, 2:], 1e-6) * f + K[:2, 2]
+        N = model.normals[o, v] @ R.T
+        ok = model.valid[o, v]
+        b = jnp.floor(jnp.mod(jnp.arctan2(N[:, 1], N[:, 0]), jnp.pi) / jnp.pi * NUM_BINS
+                      + 0.5).astype(jnp.int32) % NUM_BINS
+        ui, vi = jnp.round(uv[:, 0]).astype(jnp.int32), jnp.round(uv[:, 1]).astype(jnp.int32)
+        inside = ok & (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
+        r = response[b, jnp.clip(vi, 0, H - 1), jnp.clip(ui, 0, W - 1)]
+        n = jnp.maximum(jnp.sum(ok), 1)
+        sim = jnp.sum(jnp.where(inside, r, 0.0)) / n
+        w = ok.astype(jnp.float32) / n
+        mean = jnp.sum(w[:, None] * uv, 0)
+        c = uv - mean
+        cov = jnp.einsum("n,ni,nj->ij", w, c, c)
+        ev = jnp.linalg.eigvalsh(cov)
+        r_px = model.radius[o] * jnp.sqrt(f[0] * f[1]) / jnp.maximum(t[2], 1e-6)
+        lo = jnp.clip(jnp.round(jnp.min(jnp.where(ok[:, None], uv, 1e9), 0)), 0,
+                      jnp.array([W, H])).astype(jnp.int32)
+        hi = jnp.clip(jnp.round(jnp.max(jnp.where(ok[:, None], uv, -1e9), 0)) + 1, 0,
+                      jnp.array([W, H])).astype(jnp.int32)
+        area = jnp.maximum((hi[0] - lo[0]) * (hi[1] - lo[1]), 1)
+        clutter = (table[hi[1], hi[0]] - table[lo[1], hi[0]] - table[hi[1], lo[0]]
+                   + table[lo[1], lo[0]]) / area
+        return jnp.stack([sim, jnp.sqrt(jnp.maximum(ev[0], 0.0)) / r_px,
+                          jnp.sqrt(jnp.maximum(ev[0], 0.0) / jnp.maximum(ev[1], 1e-9)),
+                          jnp.log(2.0 * r_px), clutter])
+
+    shape = jax.vmap(one)(poses, obj)
+    return jnp.concatenate([contour[:, None], template[:, None], shape[:, :1], lines[:, None],
+                            shape[:, 1:]], 1)
+
+
+#: Logistic weights of :func:`calibrated_score` over :func:`score_inputs` (the last entry is
+#: the bias), fitted by ``python bench/templates_score.py --fit`` on held-out cell scenes of
+#: parts no evaluation uses (docs/benchmarks.md, "Training-free detection").
+SCORE_WEIGHTS = (0.3172, 0.1149, 0.5048, 2.342, 4.146, 0.6079, 0.7014, -1.262, -9.552)
+
+
+def score_inputs(features: np.ndarray) -> np.ndarray:
+    """[P, F] the inputs of the score's logistic model from :func:`outline_features` [P, F]:
+    the three similarities as log-odds (clipped to [1e-3, 1 - 1e-3]), the rest as they are."""
+    f = np.asarray(features, np.float64)
+    p = np.clip(f[:, :3], 1e-3, 1 - 1e-3)
+    return np.concatenate([np.log(p / (1 - p)), f[:, 3:]], 1)
+
+
+def calibrated_score(features: np.ndarray, weights=SCORE_WEIGHTS) -> np.ndarray:
+    """[P] the probability that each verified candidate (:func:`outline_features` [P, F]) is
+    a right detection (its part, box IoU >= 0.5), by a logistic model over
+    :func:`score_inputs` with ``weights`` (F + 1: the last is the bias)."""
+    w = np.asarray(weights, np.float64)
+    z = score_inputs(features) @ w[:-1] + w[-1]
+    return 1.0 / (1.0 + np.exp(-z))
+
+
+def fit_score_weights(features: np.ndarray, right: np.ndarray, l2: float = 1e-2) -> np.ndarray:
+    """[F + 1] the weights of :func:`calibrated_score` that fit candidates' features [P, F] to
+    whether each was right [P] (bool): L2-regularised logistic regression (``l2`` on the
+    weights of the standardised inputs, not the bias) by SciPy's L-BFGS-B."""
+    from scipy.optimize import minimize
+
+    X = score_inputs(features)
+    y = np.asarray(right, np.float64)
+    mu, sd = X.mean(0), X.std(0) + 1e-9
+    Z = np.concatenate([(X - mu) / sd, np.ones((len(X), 1))], 1)
+
+    def loss(w):
+        z = Z @ w
+        p = 1.0 / (1.0 + np.exp(-z))
+        reg = np.concatenate([w[:-1], [0.0]])
+        return (np.sum(np.logaddexp(0.0, z) - y * z) / len(y) + l2 * np.sum(reg ** 2),
+                Z.T @ (p - y) / len(y) + 2.0 * l2 * reg)
+
+    w = minimize(loss, np.zeros(Z.shape[1]), jac=True, method="L-BFGS-B").x
+    return np.concatenate([w[:-1] / sd, [w[-1] - np.sum(w[:-1] * mu / sd)]])
+
+
 @functools.partial(jax.jit, static_argnames=("settings", "lines"))
 def verify(model: ContourModel, image: Array, K: Array, poses: Array, obj: Array,
-           settings: ContourSettings, lines: int) -> tuple[Array, Array, Array]:
+           settings: ContourSettings, lines: int) -> tuple[Array, Array, Array, Array]:
     """Refine candidate poses [P, 4, 4] T_cam_obj of objects ``obj`` [P] in one image (uint8
     [H, W, 3]) with the contour refiner on ``lines`` outline points, no occluders; returns the
-    poses, their contour scores [P] and outline boxes [P, 4] xyxy (of the full outlines)."""
+    poses, their contour scores [P], outline boxes [P, 4] xyxy (of the full outlines) and the
+    share of the ``lines`` that were valid [P]."""
     P = poses.shape[0]
     full, n = model, model.points.shape[2]
     if lines < n:  # a coarser outline: every (n / lines)-th point
@@ -281,4 +394,5 @@ def verify(model: ContourModel, image: Array, K: Array, poses: Array, obj: Array
     res = refine_poses(model, image[None], K[None], jnp.eye(4)[None], poses, obj,
                        jnp.arange(P, dtype=jnp.int32), none, jnp.zeros((1, 8, 8)),
                        jnp.ones((P, 1), bool), settings)
-    return res.poses, res.scores, outline_boxes(full, res.poses, obj, K)
+    return (res.poses, res.scores, outline_boxes(full, res.poses, obj, K),
+            res.lines / model.points.shape[2])
