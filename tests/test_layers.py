@@ -29,10 +29,12 @@ OUTSIDE = {
     "infer": {"threept_jax"},
     "demo": {"threept_jax", "datagen", "train", "infer"},
 }
-#: The orchestrators: the whole adaptation (nothing imports it but the demo and the campaign)
-#: and the training campaign, which makes its own data.
+#: The orchestrators: the whole adaptation (nothing imports it but the demo and the campaign),
+#: the training campaign, which makes its own data, and the fit of the templates detector's
+#: score (scenes made as the adaptation makes them, candidates from the detector).
 EXCEPTIONS = {"train/adapt.py": {"threept_jax", "datagen", "infer"},
-              "train/campaign.py": {"threept_jax", "datagen"}}
+              "train/campaign.py": {"threept_jax", "datagen"},
+              "train/templates_score.py": {"threept_jax", "datagen", "infer"}}
 
 
 def imports(path: pathlib.Path) -> set[str]:
