@@ -209,9 +209,11 @@ def add_group_rows(results: Results, group, images, Ks, T_cam_world, instances, 
 
     One view: every instance. Several: those whose bounding-sphere centre projects inside the
     view in front of its camera. Score: the detection score (AP ranks by it; the refiner's
-    score is a logit not calibrated across objects). 2D box: for refined instances the tight
-    box of the refiner mask in that view, else the amodal detection box (the projected model
-    when the view did not detect it), clipped to the image.
+    score is a logit not calibrated across objects). 2D box: amodal, as the evaluation's
+    ground truth (the box of the full silhouette): for refined instances the projected model
+    at the refined pose (the refiner's mask is the visible part: its box shrank occluded
+    parts' boxes), else the detection box (the projected model when the view did not detect
+    it), clipped to the image.
     """
     drawn = []
     for v, (view, image, K) in enumerate(zip(group, images, Ks)):
@@ -222,11 +224,10 @@ def add_group_rows(results: Results, group, images, Ks, T_cam_world, instances, 
             obj = objects[x.obj_id]
             if len(group) > 1 and not in_view(T[:3, :3] @ obj.center + T[:3, 3], K, hw):
                 continue
-            box = mask_box(m[v]) if refined else None
-            if box is None:
-                # A refined instance whose mask is empty in this view keeps its row, with the
-                # detection box and an empty RLE: its pose still counts for 6D.
-                box = x.boxes[v] if v in x.boxes else model_box(obj.mesh.vertices, T, K)
+            if refined or v not in x.boxes:
+                box = model_box(obj.mesh.vertices, T, K)
+            else:
+                box = x.boxes[v]
             box = results.add(view.scene_id, view.im_id, x.obj_id, x.score, T, m[v], box, elapsed)
             rows.append((i, T, box, m[v]))
         drawn.append(rows)
@@ -501,9 +502,7 @@ def run_refine_only(args) -> dict:
         drawn = []
         for e, r in zip(rows, refined):
             T = r.T_world_obj
-            box = mask_box(r.masks[0])
-            if box is None:  # an empty mask keeps its row: the pose still counts for 6D
-                box = model_box(by_id[e.obj_id].mesh.vertices, T, K)
+            box = model_box(by_id[e.obj_id].mesh.vertices, T, K)  # amodal, as the GT's
             box = results.add(scene_id, im_id, e.obj_id, e.score, T, r.masks[0], box, total)
             drawn.append((len(drawn), T, box, r.masks[0]))
         if n < args.overlays:

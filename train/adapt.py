@@ -338,8 +338,8 @@ def figures(result: dict) -> dict:
     """
     refined = "pose_initial" in result
     detection = result.get("detection", {})
-    # With a refiner the final boxes are the refined masks' tight boxes; the initial file
-    # keeps the detector's.
+    # With a refiner the final boxes are the refined poses' projected models (amodal); the
+    # initial file keeps the detector's: the box figures are the detector's.
     box = result.get("detection_initial" if refined else "detection", {}).get("bbox", {})
     out = {"box_ap": box.get("ap"), "box_ap50": box.get("ap50"), "box_f1": box.get("f1"),
            "box_f1_threshold": box.get("f1_threshold"),
