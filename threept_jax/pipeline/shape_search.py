@@ -108,8 +108,9 @@ def orientation_bin(dx, dy):
     """Quantised orientation modulo 180 degrees of vectors (dx, dy), in [0, NUM_BINS): bin k
     is centred on k * 180 / NUM_BINS degrees, so the horizontal, vertical and diagonal edges
     of parts and images sit in the middle of a bin, not on a border between two."""
-    angle = np.mod(np.arctan2(dy, dx), np.pi)
-    return (np.floor(angle / np.pi * NUM_BINS + 0.5).astype(np.int32)) % NUM_BINS
+    xp = jnp if isinstance(dx, jax.Array) else np  # NumPy images, jitted outlines
+    angle = xp.mod(xp.arctan2(dy, dx), np.pi)
+    return (xp.floor(angle / np.pi * NUM_BINS + 0.5).astype(np.int32)) % NUM_BINS
 
 
 def shape_templates(contours: dict[str, np.ndarray], settings: ShapeSearchSettings
@@ -253,19 +254,26 @@ def poses_from_fit(rotations: np.ndarray, center: np.ndarray, depth: np.ndarray,
     return T
 
 
+def _outline(model: ContourModel, T: Array, o: Array, K: Array):
+    """The outline of object ``o`` at pose T [4, 4] T_cam_obj, from the stored view nearest the
+    camera's direction: image points uv [N, 2] (px), normals in the camera frame [N, 3] and
+    valid [N]."""
+    R, t = T[:3, :3], T[:3, 3]
+    d = -R.T @ t - model.center[o]
+    v = jnp.argmax(model.directions[o] @ (d / jnp.maximum(jnp.linalg.norm(d), 1e-9)))
+    X = model.points[o, v] @ R.T + t
+    uv = X[:, :2] / jnp.maximum(X[:, 2:], 1e-6) * jnp.stack([K[0, 0], K[1, 1]]) + K[:2, 2]
+    return uv, model.normals[o, v] @ R.T, model.valid[o, v]
+
+
 def outline_boxes(model: ContourModel, poses: Array, obj: Array, K: Array) -> Array:
     """[P, 4] xyxy boxes of the outlines (the nearest stored view's contour points) of objects
     ``obj`` [P] at poses [P, 4, 4] T_cam_obj."""
 
     def one(T, o):
-        R, t = T[:3, :3], T[:3, 3]
-        d = -R.T @ t - model.center[o]
-        v = jnp.argmax(model.directions[o] @ (d / jnp.maximum(jnp.linalg.norm(d), 1e-9)))
-        X = model.points[o, v] @ R.T + t
-        uv = X[:, :2] / jnp.maximum(X[:, 2:], 1e-6) * jnp.stack([K[0, 0], K[1, 1]]) + K[:2, 2]
-        ok = model.valid[o, v][:, None]
-        return jnp.concatenate([jnp.min(jnp.where(ok, uv, 1e9), 0),
-                                jnp.max(jnp.where(ok, uv, -1e9), 0)])
+        uv, _, ok = _outline(model, T, o, K)
+        return jnp.concatenate([jnp.min(jnp.where(ok[:, None], uv, 1e9), 0),
+                                jnp.max(jnp.where(ok[:, None], uv, -1e9), 0)])
 
     return jax.vmap(one)(poses, obj)
 
@@ -295,16 +303,8 @@ def outline_features(model: ContourModel, response: Array, K: Array, poses: Arra
     table = jnp.pad(jnp.cumsum(jnp.cumsum(jnp.mean(response, 0), 0), 1), ((1, 0), (1, 0)))
 
     def one(T, o):
-        R, t = T[:3, :3], T[:3, 3]
-        d = -R.T @ t - model.center[o]
-        v = jnp.argmax(model.directions[o] @ (d / jnp.maximum(jnp.linalg.norm(d), 1e-9)))
-        X = model.points[o, v] @ R.T + t
-        f = jnp.stack([K[0, 0], K[1, 1]])
-        uv = X[:, :2] / jnp.maximum(X[:, 2:], 1e-6) * f + K[:2, 2]
-        N = model.normals[o, v] @ R.T
-        ok = model.valid[o, v]
-        b = jnp.floor(jnp.mod(jnp.arctan2(N[:, 1], N[:, 0]), jnp.pi) / jnp.pi * NUM_BINS
-                      + 0.5).astype(jnp.int32) % NUM_BINS
+        uv, N, ok = _outline(model, T, o, K)
+        b = orientation_bin(N[:, 0], N[:, 1])
         ui, vi = jnp.round(uv[:, 0]).astype(jnp.int32), jnp.round(uv[:, 1]).astype(jnp.int32)
         inside = ok & (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
         r = response[b, jnp.clip(vi, 0, H - 1), jnp.clip(ui, 0, W - 1)]
@@ -315,11 +315,11 @@ def outline_features(model: ContourModel, response: Array, K: Array, poses: Arra
         c = uv - mean
         cov = jnp.einsum("n,ni,nj->ij", w, c, c)
         ev = jnp.linalg.eigvalsh(cov)
-        r_px = model.radius[o] * jnp.sqrt(f[0] * f[1]) / jnp.maximum(t[2], 1e-6)
-        lo = jnp.clip(jnp.round(jnp.min(jnp.where(ok[:, None], uv, 1e9), 0)), 0,
-                      jnp.array([W, H])).astype(jnp.int32)
-        hi = jnp.clip(jnp.round(jnp.max(jnp.where(ok[:, None], uv, -1e9), 0)) + 1, 0,
-                      jnp.array([W, H])).astype(jnp.int32)
+        r_px = model.radius[o] * jnp.sqrt(K[0, 0] * K[1, 1]) / jnp.maximum(T[2, 3], 1e-6)
+        size = jnp.array([W, H])
+        lo = jnp.clip(jnp.round(jnp.min(jnp.where(ok[:, None], uv, 1e9), 0)), 0, size)
+        hi = jnp.clip(jnp.round(jnp.max(jnp.where(ok[:, None], uv, -1e9), 0)) + 1, 0, size)
+        lo, hi = lo.astype(jnp.int32), hi.astype(jnp.int32)
         area = jnp.maximum((hi[0] - lo[0]) * (hi[1] - lo[1]), 1)
         clutter = (table[hi[1], hi[0]] - table[lo[1], hi[0]] - table[hi[1], lo[0]]
                    + table[lo[1], lo[0]]) / area
@@ -333,8 +333,8 @@ def outline_features(model: ContourModel, response: Array, K: Array, poses: Arra
 
 
 #: Logistic weights of :func:`calibrated_score` over :func:`score_inputs` (the last entry is
-#: the bias), fitted by ``python bench/templates_score.py --fit`` on held-out cell scenes of
-#: parts no evaluation uses (docs/benchmarks.md, "Training-free detection").
+#: the bias), fitted by ``python -m train.templates_score`` on cell scenes of parts no
+#: evaluation uses (docs/benchmarks.md, "Training-free detection").
 SCORE_WEIGHTS = (0.3172, 0.1149, 0.5048, 2.342, 4.146, 0.6079, 0.7014, -1.262, -9.552)
 
 
