@@ -29,16 +29,15 @@ import jax.numpy as jnp  # noqa: E402
 from flax import nnx  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from threept_jax.geometry.grids import super_fibonacci_rotations  # noqa: E402
 from threept_jax.models.configs import DetectorConfig  # noqa: E402
 from threept_jax.models.detector import Detector  # noqa: E402
 from threept_jax.pipeline.detection import (  # noqa: E402
     DetectionSettings,
     FullImageDetector,
-    ObjectQueries,
 )
 from threept_jax.render import raster  # noqa: E402
 from threept_jax.render.mesh import load_mesh, prepare_mesh, to_raster_mesh  # noqa: E402
+from threept_jax.testing.detector import random_queries  # noqa: E402
 
 MESH = ROOT.parent / "shared" / "meshes" / "bop" / "tless" / "models" / "obj_000018.ply"
 
@@ -82,12 +81,7 @@ def render_rows(reps: int) -> None:
 def detector_row() -> None:
     cfg = DetectorConfig(variant="tiny/16", image_size=128, render_size=32)
     rng = np.random.default_rng(0)
-    bank = rng.normal(size=(3, 64, cfg.embed_dim)).astype(np.float32)
-    queries = ObjectQueries(
-        jnp.asarray(rng.normal(size=(3, cfg.num_prior_tokens, cfg.width)), jnp.float32),
-        jnp.asarray(bank / np.linalg.norm(bank, axis=-1, keepdims=True)),
-        jnp.asarray(super_fibonacci_rotations(64), jnp.float32),
-        jnp.asarray(rng.normal(0, 20, (3, 64, 3)), jnp.float32))
+    queries = random_queries(cfg, 3, 64, 64, rng)
     image = rng.integers(0, 256, (480, 640, 3), dtype=np.uint8)
     K = np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]], np.float32)
     firsts = []

@@ -5,10 +5,10 @@ hundred candidate poses per image; which of them are parts and which are clutter
 part's outline decides its precision. The contour score alone ranks them poorly: a plate seen
 edge-on or a pin is two straight lines that fit the tray's rim and any stripe as well as a part
 (docs/benchmarks.md, "Training-free detection"). This script fits
-:data:`threept_jax.pipeline.shape_search.SCORE_WEIGHTS`, eight numbers over the candidates'
-:data:`~threept_jax.pipeline.shape_search.FEATURES` (the contour and template scores, the
-outline's LINE-2D similarity, its valid lines, its thinness, elongation and size in the image),
-on cell scenes of parts that no evaluation uses:
+:data:`threept_jax.pipeline.shape_search.SCORE_WEIGHTS`, a weight for each of the candidates'
+eight :data:`~threept_jax.pipeline.shape_search.FEATURES` (the contour and template scores, the
+outline's LINE-2D similarity, its valid lines, its thinness, elongation and size in the image,
+the clutter in its box) and a bias, on cell scenes of parts that no evaluation uses:
 
 * three cells of five procedural parts (``procedural:5``, seeds 3, 4 and 5; the demo's are 7
   and 8), every part queried in every image;
@@ -76,10 +76,11 @@ def collect(data: pathlib.Path, per_image: bool, cache: pathlib.Path, name: str)
     from threept_jax.data import bop
     from threept_jax.geometry.boxes import box_iou
 
-    split = bop.BopDataset(data).split("val_pbr")
+    dataset = bop.BopDataset(data)
+    split = dataset.split("val_pbr")
     cell = bop.load_cell(data)
     depth = None if cell is None else tuple(cell["depth_range_mm"])
-    objects = refine_objects({k: m.path for k, m in bop.BopDataset(data).models().items()})
+    objects = refine_objects({k: m.path for k, m in dataset.models().items()})
     by_id = {o.obj_id: o for o in objects}
     detectors = {}
 
@@ -105,6 +106,9 @@ def collect(data: pathlib.Path, per_image: bool, cache: pathlib.Path, name: str)
         iou = np.where(ids[:, None] == gt_ids[None], iou, 0.0)
         feats.append(c.features)
         right.append(iou.max(1, initial=0.0) >= 0.5)
+    if not feats:
+        sys.exit(f"{data}: no image gave a candidate (no proposal or no part outline): check "
+                 f"its images and meshes, or delete the folder to make it again")
     return np.concatenate(feats), np.concatenate(right)
 
 

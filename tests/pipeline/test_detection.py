@@ -6,16 +6,15 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from threept_jax.geometry.grids import super_fibonacci_rotations
 from threept_jax.models.configs import DetectorConfig
 from threept_jax.models.detector import Detector, detection_scores
 from threept_jax.pipeline.detection import (
     SCORE_MODES,
     DetectionSettings,
     FullImageDetector,
-    ObjectQueries,
     model_points,
 )
+from threept_jax.testing.detector import random_queries
 
 
 def test_score_modes_match_a_float64_reference():
@@ -45,12 +44,7 @@ def test_several_modes_share_one_forward_without_changing_any():
     model = Detector(cfg, rngs=nnx.Rngs(0))
     graphdef, params = nnx.split(model)
     rng = np.random.default_rng(0)
-    bank = rng.normal(size=(2, 12, cfg.embed_dim)).astype(np.float32)
-    queries = ObjectQueries(
-        jnp.asarray(rng.normal(size=(2, cfg.num_prior_tokens, cfg.width)), jnp.float32),
-        jnp.asarray(bank / np.linalg.norm(bank, axis=-1, keepdims=True)),
-        jnp.asarray(super_fibonacci_rotations(12), jnp.float32),
-        jnp.asarray(rng.normal(0, 20, (2, 32, 3)), jnp.float32))
+    queries = random_queries(cfg, 2, 12, 32, rng)
     image = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
     K = np.array([[120.0, 0, 47.5], [0, 120, 31.5], [0, 0, 1]], np.float32)
     settings = dict(score_threshold=0.0, max_detections=6, candidates_per_object=16,
