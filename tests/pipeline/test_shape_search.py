@@ -149,6 +149,25 @@ def _angle(Ra, Rb, symmetries):
                for S_ in symmetries)
 
 
+def test_proposals_are_the_same_whatever_called_rand_before():
+    """Selective search ranks its regions with C's ``rand()``: the same image must give the
+    same boxes, in the same order, however many times anything else drew from it between
+    two calls (it did not: detections changed from run to run)."""
+    import ctypes
+    import ctypes.util
+
+    libc = ctypes.CDLL(ctypes.util.find_library("c"))
+    image = _background(1)
+    for k, (x, y) in enumerate([(40, 30), (150, 90), (230, 40)]):
+        cv2.rectangle(image, (x, y), (x + 50, y + 70), (200, 60 * k, 30), -1)
+    first = S.proposals(image, SMALL)
+    for draws in (1, 17, 1000):
+        for _ in range(draws):
+            libc.rand()
+        np.testing.assert_array_equal(S.proposals(image, SMALL), first)
+    assert len(first) > 10
+
+
 def test_each_part_gets_its_share_of_the_verified_candidates():
     """select_candidates against a loop: every part's best n // P, then the best of the rest,
     best score first; a part with fewer candidates than its share leaves the rest to others."""

@@ -33,6 +33,8 @@ template, B proposals, k templates kept per proposal.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import dataclasses
 import functools
 from typing import NamedTuple
@@ -46,6 +48,9 @@ from threept_jax.geometry.grids import viewpoint_rotation
 from threept_jax.pipeline.contour import ContourModel, ContourSettings, refine_poses
 
 Array = jax.Array
+
+#: The C library, whose ``rand()`` OpenCV's selective search ranks its regions with.
+_LIBC = ctypes.CDLL(ctypes.util.find_library("c"))
 
 #: Quantised gradient orientations (modulo 180 degrees: a part may be darker or lighter than
 #: what is behind it).
@@ -179,6 +184,10 @@ def proposals(image: np.ndarray, settings: ShapeSearchSettings) -> np.ndarray:
     ss = cv2.ximgproc.segmentation.createSelectiveSearchSegmentation()
     ss.setBaseImage(small)
     ss.switchToSelectiveSearchFast()
+    # OpenCV ranks the regions by their level times C's rand() (the paper's randomised
+    # ranking), so which boxes came first depended on whatever had called rand() before: the
+    # same image gave other detections from call to call. Seeded, it gives the same ones.
+    _LIBC.srand(0)
     boxes = ss.process()[:settings.max_proposals].astype(np.float32) / s
     return boxes.reshape(-1, 4)
 
