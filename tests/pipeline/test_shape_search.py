@@ -152,9 +152,10 @@ def _angle(Ra, Rb, symmetries):
 def test_proposals_are_the_same_whatever_called_rand_before():
     """Selective search ranks its regions with C's ``rand()``: the same image must give the
     same boxes, in the same order, however many times anything else drew from it between
-    two calls (it did not: detections changed from run to run)."""
+    two calls (it did not: detections changed from run to run), and in threads run at once."""
     import ctypes
     import ctypes.util
+    from concurrent.futures import ThreadPoolExecutor
 
     libc = ctypes.CDLL(ctypes.util.find_library("c"))
     image = _background(1)
@@ -166,6 +167,10 @@ def test_proposals_are_the_same_whatever_called_rand_before():
             libc.rand()
         np.testing.assert_array_equal(S.proposals(image, SMALL), first)
     assert len(first) > 10
+    # Four threads at once (OpenCV lets go of the GIL): the same boxes in every call.
+    with ThreadPoolExecutor(4) as pool:
+        for boxes in pool.map(lambda _: S.proposals(image, SMALL), range(8)):
+            np.testing.assert_array_equal(boxes, first)
 
 
 def test_each_part_gets_its_share_of_the_verified_candidates():

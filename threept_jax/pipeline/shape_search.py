@@ -37,6 +37,7 @@ import ctypes
 import ctypes.util
 import dataclasses
 import functools
+import threading
 from typing import NamedTuple
 
 import cv2
@@ -51,6 +52,7 @@ Array = jax.Array
 
 #: The C library, whose ``rand()`` OpenCV's selective search ranks its regions with.
 _LIBC = ctypes.CDLL(ctypes.util.find_library("c"))
+_RAND_LOCK = threading.Lock()
 
 #: Quantised gradient orientations (modulo 180 degrees: a part may be darker or lighter than
 #: what is behind it).
@@ -186,9 +188,11 @@ def proposals(image: np.ndarray, settings: ShapeSearchSettings) -> np.ndarray:
     ss.switchToSelectiveSearchFast()
     # OpenCV ranks the regions by their level times C's rand() (the paper's randomised
     # ranking), so which boxes came first depended on whatever had called rand() before: the
-    # same image gave other detections from call to call. Seeded, it gives the same ones.
-    _LIBC.srand(0)
-    boxes = ss.process()[:settings.max_proposals].astype(np.float32) / s
+    # same image gave other detections from call to call. Seeded, it gives the same ones; the
+    # lock keeps two threads from drawing from the one generator at once.
+    with _RAND_LOCK:
+        _LIBC.srand(0)
+        boxes = ss.process()[:settings.max_proposals].astype(np.float32) / s
     return boxes.reshape(-1, 4)
 
 
