@@ -13,8 +13,8 @@ template grid), become the instance's hypotheses, the translation puts the
 object's bounding-sphere centre at the triangulated point.
 
 Masks are the silhouettes of the best pose rendered in each view, each pixel going to the
-highest-scoring instance that covers it; with a refiner (``infer.run_scene``) they are the
-refiner's learned visible masks instead, assigned the same way (:func:`assign_pixels`).
+highest-scoring instance that covers it (:func:`render_masks`); with a refiner
+(``infer.run_scene``) the same rule at the refined poses.
 """
 
 from __future__ import annotations
@@ -190,11 +190,20 @@ def find_instances(detector: SceneDetector, images: Sequence[np.ndarray],
                                min_angle_deg=detector.min_angle_deg)
     instances = Instances(instances, max(d.best_score for d in detections))
     if with_masks and instances:
-        renderer = renderer or PoseRenderer(detector.objects)
-        for v, (img, K) in enumerate(zip(images, Ks)):
-            posed = [Detection(x.obj_id, x.boxes.get(v, np.zeros(4, np.float32)), x.score,
-                               (T_cam_world[v] @ x.T_world_obj)[None], x.hypothesis_scores[:1],
-                               np.zeros(0, np.float32)) for x in instances]
-            for x, mask in zip(instances, detection_masks(posed, K, img.shape[:2], renderer)):
-                x.masks[v] = mask
+        render_masks(instances, images, Ks, T_cam_world, renderer or PoseRenderer(
+            detector.objects))
     return instances
+
+
+def render_masks(instances: Sequence[Instance], images: Sequence[np.ndarray],
+                 Ks: Sequence[np.ndarray], T_cam_world: np.ndarray,
+                 renderer: PoseRenderer) -> None:
+    """Each instance's mask in every view (in place): the silhouette of its CAD model at
+    ``T_world_obj``, each pixel to the first (best) instance covering it."""
+    for v, (img, K) in enumerate(zip(images, Ks)):
+        posed = [Detection(x.obj_id, x.boxes.get(v, np.zeros(4, np.float32)), x.score,
+                           (T_cam_world[v] @ x.T_world_obj)[None], x.hypothesis_scores[:1],
+                           np.zeros(0, np.float32)) for x in instances]
+        for x, mask in zip(instances, detection_masks(posed, np.asarray(K, np.float32),
+                                                      img.shape[:2], renderer)):
+            x.masks[v] = mask

@@ -78,7 +78,7 @@ def test_refine_keeps_order_and_initial_poses_and_does_not_retrace_within_a_bin(
     assert refiner.traces == 1
 
 
-def test_run_scene_refines_every_instance_with_masks_from_the_refiner(refiner_models):
+def test_run_scene_refines_every_instance_with_masks_of_the_refined_poses(refiner_models):
     from infer.scene import find_instances
 
     _, meshes, both = refiner_models
@@ -91,9 +91,16 @@ def test_run_scene_refines_every_instance_with_masks_from_the_refiner(refiner_mo
         assert a.obj_id == b.obj_id and a.refine_score is not None and b.refine_score is None
         np.testing.assert_allclose(a.T_world_obj_initial, b.T_world_obj, atol=1e-4)
         assert a.masks[0].shape == (96, 128)
-    # Each pixel belongs to at most one instance.
+    # Each pixel belongs to at most one instance: the refined pose's silhouette less those of
+    # the better-scored instances before it (rendered here one by one).
     total = sum(x.masks[0].astype(int) for x in got)
     assert total.max() <= 1
+    renderer = both.pose_renderer(both.onboard(meshes))
+    taken = np.zeros((96, 128), bool)
+    for x in got:
+        sil = renderer.masks(x.obj_id, x.T_world_obj[None].astype(np.float32), K, (96, 128))[0]
+        np.testing.assert_array_equal(x.masks[0], sil & ~taken)
+        taken |= sil
     objects = both.onboard(meshes)
     assert [x.obj_id for x in find_instances(both.scene_detector(objects, **options), [image],
                                              [K], with_masks=False)] == [x.obj_id for x in got]
