@@ -279,18 +279,17 @@ def run_scene(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarra
     refined = models.scene_refiner(objects)(
         images, np.stack(Ks), T_cam_world, [x.obj_id for x in instances],
         [x.hypotheses for x in instances])
-    out = Instances([dataclasses.replace(x, T_world_obj=r.T_world_obj,
-                                         T_world_obj_initial=x.T_world_obj,
-                                         refine_score=r.score, masks={})
-                     for x, r in zip(instances, refined)], instances.best_score)
-    if with_masks:
-        # The refined poses' silhouettes, each pixel to the best-scored instance, as without a
-        # refiner: the refiner's own visibility map gave the pixels to whichever instance was
-        # nearest, and low-scored candidates in front of real parts took theirs (segm AP 0.32
-        # against 0.60 on held-out T-LESS/ITODD cells with every candidate kept).
-        render_masks(out, images, Ks, np.eye(4)[None] if T_cam_world is None else T_cam_world,
-                     renderer)
-    return out
+    # Masks: the refined poses' silhouettes, each pixel to the best-scored instance, as without
+    # a refiner: the refiner's own visibility map gave the pixels to whichever instance was
+    # nearest, and low-scored candidates in front of real parts took theirs (segm AP 0.32
+    # against 0.60 on held-out T-LESS/ITODD cells with every candidate kept).
+    masks = (render_masks(instances, [r.T_world_obj for r in refined], images, Ks,
+                          np.eye(4)[None] if T_cam_world is None else T_cam_world, renderer)
+             if with_masks else [{} for _ in instances])
+    return Instances([dataclasses.replace(x, T_world_obj=r.T_world_obj,
+                                          T_world_obj_initial=x.T_world_obj,
+                                          refine_score=r.score, masks=m)
+                      for x, r, m in zip(instances, refined, masks)], instances.best_score)
 
 
 def refine(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarray],

@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 from infer.api import Camera, refine, run_scene
 from infer.options import detector_options, load_models
+from infer.scene import render_masks
 
 #: Images without detections named one by one on the console; the rest are counted.
 MAX_EMPTY_LINES = 10
@@ -234,25 +235,6 @@ def add_group_rows(results: Results, group, images, Ks, T_cam_world, instances, 
     return drawn
 
 
-def silhouettes(instances, poses, images, Ks, T_cam_world, renderer) -> list[dict]:
-    """{view: bool [H, W]} per instance: the silhouettes of the CAD models at ``poses`` (world),
-    each pixel to the best instance covering it: the masks ``run_scene`` gives without a
-    refiner (``infer.scene.find_instances``)."""
-    from infer.detect import Detection
-    from infer.masks import detection_masks
-
-    out = [{} for _ in instances]
-    for v, (image, K) in enumerate(zip(images, Ks)):
-        posed = [Detection(x.obj_id, np.zeros(4, np.float32), x.score,
-                           (T_cam_world[v] @ T).astype(np.float32)[None],
-                           x.hypothesis_scores[:1], np.zeros(0, np.float32))
-                 for x, T in zip(instances, poses)]
-        for m, mask in zip(out, detection_masks(posed, np.asarray(K, np.float32),
-                                                image.shape[:2], renderer)):
-            m[v] = mask
-    return out
-
-
 def _draw(path: pathlib.Path, image, rows, instances, threshold: float, caption,
           rows_before=()) -> None:
     """One overlay: the rows above ``threshold`` (boxes, labels, contours of the written poses)
@@ -325,7 +307,7 @@ def run_bop(args) -> dict:
             before = [x.T_world_obj_initial for x in instances]
             drawn_before = add_group_rows(
                 initial, group, images, Ks, T_cw, instances, before,
-                silhouettes(instances, before, images, Ks, T_cw, nets.pose_renderer(objects)),
+                render_masks(instances, before, images, Ks, T_cw, nets.pose_renderer(objects)),
                 elapsed, by_id, refined=False)
         caption = None
         if not instances:

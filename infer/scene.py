@@ -190,20 +190,26 @@ def find_instances(detector: SceneDetector, images: Sequence[np.ndarray],
                                min_angle_deg=detector.min_angle_deg)
     instances = Instances(instances, max(d.best_score for d in detections))
     if with_masks and instances:
-        render_masks(instances, images, Ks, T_cam_world, renderer or PoseRenderer(
-            detector.objects))
+        masks = render_masks(instances, [x.T_world_obj for x in instances], images, Ks,
+                             T_cam_world, renderer or PoseRenderer(detector.objects))
+        for x, m in zip(instances, masks):
+            x.masks.update(m)
     return instances
 
 
-def render_masks(instances: Sequence[Instance], images: Sequence[np.ndarray],
-                 Ks: Sequence[np.ndarray], T_cam_world: np.ndarray,
-                 renderer: PoseRenderer) -> None:
-    """Each instance's mask in every view (in place): the silhouette of its CAD model at
-    ``T_world_obj``, each pixel to the first (best) instance covering it."""
+def render_masks(instances: Sequence[Instance], poses: Sequence[np.ndarray],
+                 images: Sequence[np.ndarray], Ks: Sequence[np.ndarray],
+                 T_cam_world: np.ndarray, renderer: PoseRenderer) -> list[dict]:
+    """{view: bool [H, W]} per instance: the silhouette of its CAD model at ``poses``
+    (world, one per instance) in every view, each pixel to the first (best) instance covering
+    it."""
+    out = [{} for _ in instances]
     for v, (img, K) in enumerate(zip(images, Ks)):
-        posed = [Detection(x.obj_id, x.boxes.get(v, np.zeros(4, np.float32)), x.score,
-                           (T_cam_world[v] @ x.T_world_obj)[None], x.hypothesis_scores[:1],
-                           np.zeros(0, np.float32)) for x in instances]
-        for x, mask in zip(instances, detection_masks(posed, np.asarray(K, np.float32),
-                                                      img.shape[:2], renderer)):
-            x.masks[v] = mask
+        posed = [Detection(x.obj_id, np.zeros(4, np.float32), x.score,
+                           (T_cam_world[v] @ T).astype(np.float32)[None],
+                           x.hypothesis_scores[:1], np.zeros(0, np.float32))
+                 for x, T in zip(instances, poses)]
+        for m, mask in zip(out, detection_masks(posed, np.asarray(K, np.float32),
+                                                img.shape[:2], renderer)):
+            m[v] = mask
+    return out
