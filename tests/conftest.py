@@ -26,7 +26,8 @@ jax.config.update("jax_num_cpu_devices", 4)
 FAST_COMPILE = ("tests/train/test_refiner_trainer.py", "tests/pipeline/test_refine_loop.py",
                 "tests/train/test_detector_trainer.py", "tests/train/test_adapt.py",
                 "tests/infer/test_track_cli.py", "tests/infer/test_bop_runner.py",
-                "tests/infer/test_refine_api.py", "tests/infer/test_detect.py")
+                "tests/infer/test_refine_api.py", "tests/infer/test_detect.py",
+                "tests/train/test_cluster.py", "tests/train/test_resume.py")
 _fast_compile = [False]
 _get_compile_options = _jax_compiler.get_compile_options
 

@@ -19,7 +19,7 @@ from train import run_config
 from train import trainer_refiner as trr
 from train.configs import refiner as refiner_configs
 from train.eval_refiner import mesh_digests, training_digests
-from train.trainer import FAST_COMPILE_OPTIONS, StepCache
+from train.trainer import StepCache
 
 STEPS = StepCache(maxsize=4)
 ONE = jax.devices()[:1]  # tests/conftest.py makes 4 CPU devices; the refiner's runs use one
@@ -146,10 +146,7 @@ def test_launcher_trains_the_refiner_and_refuses_a_detector_key(records, tmp_pat
              "--config.eval.every_steps=0", "--config.eval.num_steps=1",
              "--config.checkpoint.async_save=False",
              "--config.progress_bar=False"]
-    # One step: compiling is the work, so with the fast-compile options (tests/conftest.py).
-    fast = {**SUBPROCESS_ENV,
-            "XLA_FLAGS": " ".join(f"--{k}={v}" for k, v in FAST_COMPILE_OPTIONS.items())}
-    proc = subprocess.run(base + ["--workdir", str(tmp_path / "w")] + small, env=fast,
+    proc = subprocess.run(base + ["--workdir", str(tmp_path / "w")] + small, env=SUBPROCESS_ENV,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert RunDir(tmp_path / "w", model="refiner").checkpoint_steps() == [1]

@@ -211,7 +211,8 @@ def test_launcher_refuses_bad_input_in_one_line(toy, tmp_path):
     as it was: out-of-range values, a batch the devices do not divide, a resume changing the
     seed and batch size, a resume with another model variant."""
     cfg = small_config(toy)
-    two_devices = {**SUBPROCESS_ENV, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    two_devices = {**SUBPROCESS_ENV, "XLA_FLAGS": SUBPROCESS_ENV["XLA_FLAGS"]
+                   + " --xla_force_host_platform_device_count=2"}
     changed = _fake_run(tmp_path / "changed", cfg)
     other_model = _fake_run(tmp_path / "other_model", cfg)
     cases = {
