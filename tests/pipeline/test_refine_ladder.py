@@ -41,11 +41,20 @@ def mesh():
         return prepare_mesh(load_mesh(MESH), max_faces=1024)
 
 
+@pytest.fixture(scope="module")
+def scene(mesh):
+    return make_scene(mesh, 3)
+
+
 @pytest.fixture(scope="module", params=[1, 3], ids=["1view", "3views"])
-def ladder(request, mesh):
-    scene = make_scene(mesh, request.param)
+def ladder(request, scene):
+    """One view: the three-view program with the other two views masked out (the loop's
+    ``view_mask``), so both view counts share one compilation (about 40 s on 2 cores); the
+    program of one view alone is compiled and checked by the loop's own tests
+    (test_refine_loop.py, test_contour.py)."""
     starts = start_poses(scene, 8, seed=1)
-    return request.param, pose_errors(starts, scene.T_gt), run_ladder(scene, starts, RUNGS)
+    return (request.param, pose_errors(starts, scene.T_gt),
+            run_ladder(scene, starts, RUNGS, views=request.param))
 
 
 def test_ladder_is_never_worse_than_the_start(ladder):
@@ -60,7 +69,9 @@ def test_ladder_is_never_worse_than_the_start(ladder):
 def test_ladder_falls_where_the_matches_inform(ladder):
     """The median rotation error over the start's, measured over start seeds 1-4 (1 view; 3
     views): clean oracle 0.027-0.094 (0.017-0.040), required < 0.15; noise 1 0.29-0.54
-    (0.11-0.35), required < 0.75; 80 % outliers 0.06-0.19 (0.03-0.08), required < 0.35.
+    (0.11-0.35), required < 0.75; 80 % outliers 0.06-0.19 (0.03-0.08), required < 0.35. The
+    one-view figures were measured with the program of one view; the three-view program with
+    two views masked gives 0.081, 0.257 and 0.126 at seed 1 (0.081, 0.295, 0.091 unmasked).
     Nothing but outliers or noise 4: unchanged, every update refused (the start returned)."""
     views, e0, errors = ladder
     ratio = np.median(errors[..., 0], axis=1) / np.median(e0[:, 0])

@@ -92,33 +92,38 @@ def pose_errors(T: np.ndarray, T_gt: np.ndarray) -> np.ndarray:
 
 
 @functools.partial(jax.jit, static_argnames=("crop_size", "output_size", "settings", "loop"))
-def _refine(noise, outliers, meshes, images, Ks, T_cam_world, starts, *, crop_size, output_size,
-            settings, loop):
+def _refine(noise, outliers, meshes, images, Ks, T_cam_world, starts, view_mask, *, crop_size,
+            output_size, settings, loop):
     network = make_oracle(output_size, noise=noise, outliers=outliers)
-    n, views = starts.shape[0], images.shape[0]
+    n = starts.shape[0]
     return refine_instances(
         network, meshes, jnp.zeros(n, jnp.int32), images, Ks, T_cam_world, starts[:, None],
         jnp.eye(4)[None, None].repeat(n, 0), jnp.ones((n, 1), bool), jnp.ones(n, bool),
-        jnp.ones((n, views), bool), crop_size=crop_size, output_size=output_size,
-        settings=settings, loop=loop).poses
+        jnp.broadcast_to(view_mask, (n, view_mask.shape[0])), crop_size=crop_size,
+        output_size=output_size, settings=settings, loop=loop).poses
 
 
-def run_ladder(scene: LadderScene, starts: np.ndarray, rungs, *, crop_size: int = 64,
-               output_size: int = 32, settings: RefineSettings | None = None,
+def run_ladder(scene: LadderScene, starts: np.ndarray, rungs, *, views: int | None = None,
+               crop_size: int = 64, output_size: int = 32,
+               settings: RefineSettings | None = None,
                loop: LoopSettings | None = None) -> np.ndarray:
     """Errors [R, num, 2] (degrees, mm) after the loop for each rung (noise, outliers) of
     ``rungs``, every start [num, 4, 4] refined alone (K = 1). The loop's crops are not
     antialiased by default: the oracle reads a pixel's colour as the coordinate at its centre.
     Defaults: ``RefineSettings(ambient=1.0)`` (the painted renders are unshaded) and
-    ``LoopSettings(antialias=1)``."""
+    ``LoopSettings(antialias=1)``. ``views``: refine in the scene's first ``views`` views only,
+    the others masked out (the loop's ``view_mask``: no weight in PnP, not in the score), so
+    one compiled program runs both view counts; default all."""
     settings = settings or RefineSettings(ambient=1.0)
     loop = loop or LoopSettings(antialias=1)
     meshes = RefinerMeshes.from_meshes({1: scene.mesh}).stacked
+    total = len(scene.images)
+    view_mask = jnp.arange(total) < (total if views is None else views)
     out = []
     for noise, outliers in rungs:
         poses = _refine(jnp.float32(noise), jnp.float32(outliers), meshes, scene.images,
                         scene.Ks.astype(np.float32), scene.T_cam_world.astype(np.float32),
-                        jnp.asarray(starts, jnp.float32), crop_size=crop_size,
+                        jnp.asarray(starts, jnp.float32), view_mask, crop_size=crop_size,
                         output_size=output_size, settings=settings, loop=loop)
         out.append(pose_errors(np.asarray(poses), scene.T_gt))
     return np.stack(out)
