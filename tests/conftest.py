@@ -65,16 +65,19 @@ def bop_models_dir():
 #: two xdist workers run them side by side while the many short tests fill the gaps at the end
 #: (``make test`` groups each module on one worker, ``--dist loadscope``, so a module's compiled
 #: fixtures are built once).
-SLOW_FIRST = (  # by their measured test time, longest first (docs/testing.md)
-    "tests/train/test_adapt.py", "tests/train/test_refiner_trainer.py",
-    "tests/pipeline/test_refine_ladder.py", "tests/train/test_detector_trainer.py",
-    "tests/pipeline/test_refine_loop.py", "tests/train/test_cluster.py",
-    "tests/train/test_campaign.py", "tests/train/test_refiner_learning.py",
-    "tests/train/test_learning.py", "tests/pipeline/test_contour.py",
-    "tests/pipeline/test_refinement.py", "tests/infer/test_bop_runner.py",
-    "tests/pipeline/test_shape_search.py", "tests/infer/test_shipped_guard.py",
-    "tests/datagen/test_mesh_kinds.py", "tests/infer/test_track_cli.py",
-    "tests/infer/test_refine_api.py", "tests/train/test_resume.py",
+SLOW_FIRST = (  # by their measured test time, longest first (docs/testing.md), those of
+    # FAST_COMPILE before the others, so that each worker runs its share of them in a row and
+    # they reuse each other's compiled programs (``_optimisation_level``)
+    "tests/train/test_adapt.py", "tests/pipeline/test_refine_loop.py",
+    "tests/train/test_refiner_trainer.py", "tests/train/test_detector_trainer.py",
+    "tests/train/test_cluster.py", "tests/infer/test_track_cli.py",
+    "tests/infer/test_refine_api.py", "tests/infer/test_bop_runner.py",
+    "tests/train/test_resume.py",
+    "tests/pipeline/test_refine_ladder.py", "tests/train/test_refiner_learning.py",
+    "tests/train/test_learning.py", "tests/train/test_campaign.py",
+    "tests/infer/test_shipped_guard.py", "tests/pipeline/test_refinement.py",
+    "tests/pipeline/test_contour.py", "tests/pipeline/test_shape_search.py",
+    "tests/datagen/test_mesh_kinds.py",
 )
 
 
@@ -82,24 +85,29 @@ def _module_path(item) -> str:
     return pathlib.Path(str(item.fspath)).resolve().relative_to(ROOT).as_posix()
 
 
+#: The optimisation level of the programs in this worker's caches: None (none yet), True (fast).
+_cached_level: list[bool | None] = [None]
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _optimisation_level(request):
     """Programs compiled by the modules of FAST_COMPILE (their module fixtures included: an
     autouse fixture comes first in its scope) skip LLVM's optimisations.
 
-    Such a module starts and ends with JAX's in-memory caches and the shared training steps
-    emptied, so no program compiled at one level runs at the other: the levels round floats
-    differently (eager ``jnp`` ops too), and a later module comparing its results with a
-    subprocess's got other bits (``datagen.generate``'s one-thread test failed that way in CI).
+    A module whose level is not that of the programs the worker holds starts with JAX's
+    in-memory caches and the shared training steps emptied, so no program compiled at one
+    level runs at the other: the levels round floats differently (eager ``jnp`` ops too), and
+    a later module comparing its results with a subprocess's got other bits
+    (``datagen.generate``'s one-thread test failed that way in CI). Modules of one level in a
+    row share their programs (the tiny detector's, the training steps of ``small_config``, the
+    inference loop of ``plumbing_scene_refiner``).
     """
     fast = _module_path(request.node) in FAST_COMPILE
-    if fast:
+    if _cached_level[0] is not None and _cached_level[0] != fast:
         _forget_compiled_programs()
-    _fast_compile[0] = fast
+    _cached_level[0] = _fast_compile[0] = fast
     yield
     _fast_compile[0] = False
-    if fast:
-        _forget_compiled_programs()
 
 
 def _forget_compiled_programs():
