@@ -10,8 +10,9 @@ tests' ``FAST_COMPILE`` level), the program's name and the test that ran it
         .venv/bin/python -m pytest -n 2 --dist loadscope --no-loadscope-reorder -q tests
     .venv/bin/python scripts/compile_log/summary.py /tmp/complog
 
-Programs found in JAX's in-memory caches are not compiled and not logged. Subprocesses that the
-tests start with their own ``PYTHONPATH`` (``tests/fixtures/training.py``) are not logged.
+Programs found in JAX's in-memory caches are not compiled and not logged. The training tests'
+subprocesses (``tests/fixtures/training.py`` ``SUBPROCESS_ENV``) put this folder on their
+``PYTHONPATH`` too when ``THREEPT_COMPILE_LOG`` is set, and are logged with the test ``-``.
 It wraps ``jax._src.compiler.backend_compile_and_load`` (jax 0.10), a private function: a JAX
 that renames it turns the log off with a warning, never the process.
 """
