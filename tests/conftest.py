@@ -107,8 +107,8 @@ def _optimisation_level(request):
     level runs at the other: the levels round floats differently (eager ``jnp`` ops too), and
     a later module comparing its results with a subprocess's got other bits
     (``datagen.generate``'s one-thread test failed that way in CI). Modules of one level in a
-    row share their programs (the tiny detector's, the training steps of ``small_config``, the
-    inference loop of ``plumbing_scene_refiner``).
+    row share their programs (the training steps of ``small_config`` in ``fixtures.training.STEPS``,
+    the tiny detector's full-image functions).
     """
     fast = _module_path(request.node) in FAST_COMPILE
     if _cached_level[0] is not None and _cached_level[0] != fast:

@@ -66,6 +66,12 @@ def test_ladder_is_never_worse_than_the_start(ladder):
         assert np.all(after <= start + [0.01, 0.01]), (views, rung, after, start)
 
 
+def test_ladder_refuses_a_view_count_the_scene_lacks(scene):
+    for views in (0, 4):
+        with pytest.raises(ValueError, match=rf"views must be in 1\.\.3 .*got {views}"):
+            run_ladder(scene, np.eye(4)[None], RUNGS, views=views)
+
+
 def test_ladder_falls_where_the_matches_inform(ladder):
     """The median rotation error over the start's, measured over start seeds 1-4 (1 view; 3
     views): clean oracle 0.027-0.094 (0.017-0.040), required < 0.15; noise 1 0.29-0.54

@@ -114,11 +114,14 @@ def run_ladder(scene: LadderScene, starts: np.ndarray, rungs, *, views: int | No
     ``LoopSettings(antialias=1)``. ``views``: refine in the scene's first ``views`` views only,
     the others masked out (the loop's ``view_mask``: no weight in PnP, not in the score), so
     one compiled program runs both view counts; default all."""
+    total = len(scene.images)
+    views = total if views is None else views
+    if not 1 <= views <= total:
+        raise ValueError(f"views must be in 1..{total} (the scene's views), got {views}")
+    view_mask = jnp.arange(total) < views
     settings = settings or RefineSettings(ambient=1.0)
     loop = loop or LoopSettings(antialias=1)
     meshes = RefinerMeshes.from_meshes({1: scene.mesh}).stacked
-    total = len(scene.images)
-    view_mask = jnp.arange(total) < (total if views is None else views)
     out = []
     for noise, outliers in rungs:
         poses = _refine(jnp.float32(noise), jnp.float32(outliers), meshes, scene.images,
