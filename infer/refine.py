@@ -11,7 +11,9 @@ beside the start carried unrefined; a last look keeps the refined best only when
 the start. Shapes are padded so that scenes with other counts
 reuse the compiled loop: instances to a bin of :func:`~threept_jax.pipeline.refine_loop.
 pad_to_bin` (masked), hypotheses to ``num_hypotheses`` (repeating the last, a duplicate the
-loop drops), views are the scene's. One compilation per (instance bin, views, image size).
+loop drops), views are the scene's. One compilation per (instance bin, views, image size,
+object count), shared by every refiner of the same network structure and settings in the
+process (another object set, another ``infer`` call).
 
 Outputs per instance (:class:`RefinedPose`): the refined pose, the refiner's score logit of
 it, the pose before refinement and after each iteration, and one visible mask per view from the
@@ -21,6 +23,7 @@ refiner's mask head, pasted back into the image.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import pathlib
 from collections.abc import Callable, Mapping, Sequence
@@ -108,29 +111,18 @@ class SceneRefiner:
         self.symmetries = {o.obj_id: pad_symmetries(np.asarray(o.symmetries, np.float32), ns)
                            for o in objects}
         if isinstance(model, nnx.Module):
-            graphdef, self._params = nnx.split(model)
-
-            def network(params):
-                return nnx.merge(graphdef, params)
+            network, self._params = nnx.split(model)
         else:  # a pure function of the refiner contract, e.g. testing.refiner_oracle
-            self._params = None
+            network, self._params = model, None
+        self._run, self._traces = _compiled_loop(network, config.crop_size, config.output_size,
+                                                 settings, loop)
 
-            def network(params):
-                return model
-
-        def run(params, stacked, *args):
-            return refine_instances(network(params), stacked, *args, crop_size=config.crop_size,
-                                    output_size=config.output_size, settings=settings,
-                                    loop=loop)
-
-        self.traces = 0
-        self._run = jax.jit(self._count(run))
-
-    def _count(self, fn):
-        def counted(*args):
-            self.traces += 1  # runs only while tracing
-            return fn(*args)
-        return counted
+    @property
+    def traces(self) -> int:
+        """How many times the compiled loop was traced (shared by every refiner of the same
+        network, sizes and settings in the process, :func:`_compiled_loop`): a call that
+        traced added one."""
+        return self._traces[0]
 
     def __call__(self, images: Sequence[np.ndarray], Ks: np.ndarray,
                  T_cam_world: np.ndarray | None, obj_ids: Sequence[int],
@@ -162,6 +154,25 @@ class SceneRefiner:
                                       history=np.asarray(out.history[i], np.float64),
                                       masks={v: masks[v] for v in range(V)}))
         return result
+
+
+@functools.lru_cache(maxsize=16)
+def _compiled_loop(network, crop_size: int, output_size: int, settings: RefineSettings,
+                   loop: LoopSettings):
+    """(the jitted ``refine_instances`` of one network, trace counter [1]), built once per
+    process for each network structure (an ``nnx.GraphDef``, compared by value: another
+    refiner of the same model) or network function, sizes and settings, so that a second
+    :class:`SceneRefiner` of the same model (another object set, another ``infer`` call)
+    compiles only shapes it has not seen."""
+    traces = [0]
+
+    def run(params, stacked, *args):
+        traces[0] += 1  # runs only while tracing
+        net = nnx.merge(network, params) if params is not None else network
+        return refine_instances(net, stacked, *args, crop_size=crop_size,
+                                output_size=output_size, settings=settings, loop=loop)
+
+    return jax.jit(run), traces
 
 
 def pad_instances(images: Sequence[np.ndarray], Ks: np.ndarray, T_cam_world: np.ndarray | None,

@@ -273,15 +273,37 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
     overlays = sorted((w / "test" / "overlays").glob("*.png"))
     assert len(overlays) == 1 and cv2.imread(str(overlays[0])).shape[1] >= 640
 
-    # Again: every stage is found done; neither training runs another step.
+    # Again: every stage is found done; neither training runs another step, and the test,
+    # which tested these checkpoints with these options, is not run again.
     mtime = (w / "adapt.json").stat().st_mtime
     checkpoints = {p: p.stat().st_mtime for p in (w / "refiner").rglob("*") if p.is_file()}
+    results = {p: p.stat().st_mtime for p in (w / "test").rglob("*") if p.is_file()}
     again = adapt.main(argv)
     assert (w / "adapt.json").stat().st_mtime == mtime
     assert run.checkpoint_steps()[-1] == budget["detector"]["steps"]
     assert {p: p.stat().st_mtime for p in (w / "refiner").rglob("*") if p.is_file()} \
         == checkpoints
-    assert again["test"] == report["test"]
+    assert {p: p.stat().st_mtime for p in (w / "test").rglob("*") if p.is_file()} == results
+    assert again["test"] == report["test"] and again["val"] == report["val"]
+    assert saved["test_inputs"] == {"detector_step": run.best_step(), "refiner":
+                                    saved["refiner"], "refiner_step": held["step"]
+                                    if helps else None, "overlays": 1, "instances": 3}
+
+
+def test_a_report_is_reused_only_for_the_checkpoints_and_options_it_tested(tmp_path):
+    inputs = {"detector_step": 7, "refiner": "contour", "refiner_step": None, "overlays": 1,
+              "instances": 3}
+    path = tmp_path / "report.json"
+    assert adapt.tested(path, inputs) is None  # no report yet
+    figures = {"test": {"box_ap50": 0.5}, "val": {"box_ap50": 0.4}, "overlay_threshold": 0.2,
+               "refiner": "contour", "overlays": str(tmp_path / "test" / "overlays")}
+    path.write_text(json.dumps({**figures, "steps": 7, "test_inputs": inputs}))
+    assert adapt.tested(path, inputs) is None  # its overlays are gone
+    (tmp_path / "test" / "overlays").mkdir(parents=True)
+    assert adapt.tested(path, inputs) == figures
+    for key, other in (("detector_step", 5), ("refiner", "/r"), ("refiner_step", 3),
+                       ("overlays", 0), ("instances", 8)):
+        assert adapt.tested(path, {**inputs, key: other}) is None, key
 
 
 def test_only_a_refiner_that_raises_held_out_recall_is_used():
