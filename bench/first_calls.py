@@ -6,7 +6,10 @@ its val scenes), which shares the first one's compiled function (docs/testing.md
 Rows, each a fresh shape in this process: cold = first call, warm = median of ``--reps`` calls,
 ratio cold / warm. The detector row: the first call of a second ``FullImageDetector`` built
 from a new, differently initialised model of the same config, against the first detector's
-first call (ratio second / first: near 0 when nothing is compiled again).
+first call (ratio second / first: near 0 when nothing is compiled again). The refiner row: the
+same for ``infer.refine.SceneRefiner`` (the tiny 3PT-R, three instances of K = 8 in one 640 x
+480 view), the second refiner holding another model of the config and another object set of
+the same shapes.
 
     python bench/first_calls.py [--reps 5]
 """
@@ -95,6 +98,39 @@ def detector_row() -> None:
           f"detector's {firsts[1]:5.2f} s  second/first {firsts[1] / firsts[0]:.2f}", flush=True)
 
 
+def refiner_row() -> None:
+    import trimesh
+
+    from infer.refine import RefineObject, SceneRefiner
+    from threept_jax.models.configs import get_refiner_config
+    from threept_jax.models.refiner import Refiner
+    from threept_jax.pipeline.refinement import RefineSettings
+    from threept_jax.render.mesh import Mesh
+
+    def box(extents, name):
+        tm = trimesh.creation.box(extents)
+        return Mesh(np.asarray(tm.vertices, np.float32), np.asarray(tm.faces, np.int32),
+                    name=name)
+
+    cfg, settings = get_refiner_config("tiny"), RefineSettings()
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    K = np.array([[[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]]], np.float32)
+    pose = np.eye(4)
+    pose[:3, 3] = [0.0, 0.0, 600.0]
+    firsts = []
+    for seed, ids in ((0, (1, 2)), (1, (3, 4))):  # two models of one config, two object sets
+        objects = [RefineObject(i, box((60 + 10 * i, 40, 30), f"box{i}"), np.eye(4)[None])
+                   for i in ids]
+        refiner = SceneRefiner(Refiner(cfg, rngs=nnx.Rngs(seed)), cfg, settings, objects)
+        t = time.perf_counter()
+        refiner([image], K, None, [ids[0], ids[1], ids[0]], [pose, pose, pose])
+        firsts.append(time.perf_counter() - t)
+    print(f"refiner 640x480, 3 instances: first refiner's first call {firsts[0]:5.2f} s, a "
+          f"second refiner's {firsts[1]:5.2f} s  second/first {firsts[1] / firsts[0]:.2f}",
+          flush=True)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--reps", type=int, default=5, help="warm calls per row (median)")
@@ -103,6 +139,7 @@ def main() -> None:
         p.error(f"--reps must be >= 1, got {args.reps}")
     render_rows(args.reps)
     detector_row()
+    refiner_row()
 
 
 if __name__ == "__main__":
