@@ -32,8 +32,8 @@ that with our own data engine, in stages that each resume when the command is ru
    held-out recall, or leaves it as it was, is not used for the test (:func:`refiner_helps`):
    the training-free contour refiner (``--refiner contour``) refines instead, as it does
    without ``--refiner-minutes``.
-6. **Test** (found done when ``W/report.json`` tested the same best checkpoints with the same
-   options): the best detector checkpoint (by full-image AP50 on the val scenes) runs ``python
+6. **Test** (found done when ``W/report.json`` tested the same scenes with the same best
+   checkpoints and options): the best detector checkpoint (by full-image AP50 on the val scenes) runs ``python
    -m infer bop`` on the val scenes, whose best-F1 score becomes the overlay threshold, then on
    the test scenes: full images, every part queried, the best detections of an image whatever
    their score (as many as a scene holds instances at most, :func:`max_detections`), refined
@@ -429,16 +429,18 @@ def test(workdir: pathlib.Path | None, data: pathlib.Path, out: pathlib.Path,
             "overlays": str(out / "test" / "overlays")}
 
 
-def inputs_of_test(workdir: pathlib.Path, refiner: pathlib.Path | str,
-                args: argparse.Namespace) -> dict:
-    """What the test stage's figures depend on beyond the scenes: the detector's and the
-    refiner's best checkpoints, and the options of the test."""
+def inputs_of_test(workdir: pathlib.Path, data: pathlib.Path, refiner: pathlib.Path | str,
+                   args: argparse.Namespace) -> dict:
+    """What the test stage's figures depend on: the val and test scenes, the detector's and
+    the refiner's best checkpoints, and the options of the test."""
     from threept_jax.data.run_dir import RunDir
 
     refiner_step = (None if isinstance(refiner, str) else
                     int(RunDir(refiner, model="refiner").best_step()))
-    return {"detector_step": int(RunDir(workdir).best_step()), "refiner": str(refiner),
-            "refiner_step": refiner_step, "overlays": args.overlays,
+    scenes = {name: sorted(p.name for p in (data / name / "val_pbr").iterdir() if p.is_dir())
+              for name in ("val", "test")}
+    return {"scenes": scenes, "detector_step": int(RunDir(workdir).best_step()),
+            "refiner": str(refiner), "refiner_step": refiner_step, "overlays": args.overlays,
             "instances": args.instances}
 
 
@@ -511,7 +513,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     start = stage(f"{n}/{n} full-image test on new scenes -> {w / 'test'}"
                    + f", refined by {use_refiner}")
-    inputs = inputs_of_test(w, use_refiner, args)
+    inputs = inputs_of_test(w, data, use_refiner, args)
     report = tested(w / "report.json", inputs)
     if report is None:
         report = test(w, data, w, cache, args.overlays, args.instances, refiner=use_refiner)

@@ -285,14 +285,15 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
         == checkpoints
     assert {p: p.stat().st_mtime for p in (w / "test").rglob("*") if p.is_file()} == results
     assert again["test"] == report["test"] and again["val"] == report["val"]
-    assert saved["test_inputs"] == {"detector_step": run.best_step(), "refiner":
+    assert saved["test_inputs"] == {"scenes": {k: scenes[k] for k in ("val", "test")},
+                                    "detector_step": run.best_step(), "refiner":
                                     saved["refiner"], "refiner_step": held["step"]
                                     if helps else None, "overlays": 1, "instances": 3}
 
 
 def test_a_report_is_reused_only_for_the_checkpoints_and_options_it_tested(tmp_path):
-    inputs = {"detector_step": 7, "refiner": "contour", "refiner_step": None, "overlays": 1,
-              "instances": 3}
+    inputs = {"scenes": {"val": ["000000"], "test": ["000001"]}, "detector_step": 7,
+              "refiner": "contour", "refiner_step": None, "overlays": 1, "instances": 3}
     path = tmp_path / "report.json"
     assert adapt.tested(path, inputs) is None  # no report yet
     figures = {"test": {"box_ap50": 0.5}, "val": {"box_ap50": 0.4}, "overlay_threshold": 0.2,
@@ -301,7 +302,8 @@ def test_a_report_is_reused_only_for_the_checkpoints_and_options_it_tested(tmp_p
     assert adapt.tested(path, inputs) is None  # its overlays are gone
     (tmp_path / "test" / "overlays").mkdir(parents=True)
     assert adapt.tested(path, inputs) == figures
-    for key, other in (("detector_step", 5), ("refiner", "/r"), ("refiner_step", 3),
+    for key, other in (("scenes", {"val": ["000000"], "test": ["000001", "000003"]}),
+                       ("detector_step", 5), ("refiner", "/r"), ("refiner_step", 3),
                        ("overlays", 0), ("instances", 8)):
         assert adapt.tested(path, {**inputs, key: other}) is None, key
 
