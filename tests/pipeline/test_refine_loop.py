@@ -304,7 +304,8 @@ def test_three_views_converge(meshes):
     wrong = np.stack([images[0]] + [_image([T_off], [tless], T) for T in T_cw[1:]])
     errs = {}
     for views in ([True, False, False], [True, True, True]):
-        out = _run(meshes, _pad(dict(args, images=wrong, view_mask=np.array([views])), False))
+        out = _run(meshes, _pad(dict(args, images=wrong, view_mask=np.array([views])),
+                                garbage=False))
         errs[sum(views)] = _errors(np.asarray(out.poses[0], np.float64), T_gt)
     assert errs[1][1] < 2.0 and errs[3][1] > 5.0, errs
     assert len(TRACES) - traces <= 1  # the program of the scenes above (0 after them)

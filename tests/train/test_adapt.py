@@ -203,6 +203,10 @@ def test_measure_step_seconds_times_the_configs_trainer(monkeypatch):
     assert config.eval.every_steps == 200 and config.init_from == "/elsewhere"  # a copy
 
 
+def _mtimes(folder: pathlib.Path) -> dict:
+    return {p: p.stat().st_mtime for p in folder.rglob("*") if p.is_file()}
+
+
 def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypatch):
     monkeypatch.setattr(adapt, "refiner_config", small_refiner)
     # The test stage's refinement at the BOP runner tests' size (its loop is tested elsewhere).
@@ -276,14 +280,11 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
     # Again: every stage is found done; neither training runs another step, and the test,
     # which tested these checkpoints with these options, is not run again.
     mtime = (w / "adapt.json").stat().st_mtime
-    checkpoints = {p: p.stat().st_mtime for p in (w / "refiner").rglob("*") if p.is_file()}
-    results = {p: p.stat().st_mtime for p in (w / "test").rglob("*") if p.is_file()}
+    checkpoints, results = _mtimes(w / "refiner"), _mtimes(w / "test")
     again = adapt.main(argv)
     assert (w / "adapt.json").stat().st_mtime == mtime
     assert run.checkpoint_steps()[-1] == budget["detector"]["steps"]
-    assert {p: p.stat().st_mtime for p in (w / "refiner").rglob("*") if p.is_file()} \
-        == checkpoints
-    assert {p: p.stat().st_mtime for p in (w / "test").rglob("*") if p.is_file()} == results
+    assert _mtimes(w / "refiner") == checkpoints and _mtimes(w / "test") == results
     assert again["test"] == report["test"] and again["val"] == report["val"]
     assert saved["test_inputs"] == {"scenes": {k: scenes[k] for k in ("val", "test")},
                                     "detector_step": run.best_step(), "refiner":
