@@ -35,6 +35,14 @@ ARMS = {
     "conv": {"model.stem": "conv"},  # early convolutions instead of the patch convolution
     "tile256": {"model.image_size": 256},  # 4x the pixels per part, 4x the tokens
     "lr3e-3": {"optim.learning_rate": 3e-3},  # a faster schedule for a 10-minute budget
+    # The conv stem (the adapt default) asked for another part at half the tiles: in a cell
+    # whose parts are in every image, every tile otherwise asks for the part it is centred on.
+    "other0.5": {"model.stem": "conv", "data.other_query_prob": 0.5},
+    "other0.8": {"model.stem": "conv", "data.other_query_prob": 0.8},
+    # Capacity: the cpu config's mini/16 ViT (width 128, depth 4: 4x the parameters).
+    "mini": {"model.stem": "conv", "model.variant": "mini/16"},
+    # Positives by place (FCOS centre sampling) instead of Hungarian matching.
+    "centre": {"model.stem": "conv", "loss.assignment": "centre"},
 }
 
 
@@ -75,7 +83,16 @@ def train_arm(name: str, overrides: dict, records: pathlib.Path, test: pathlib.P
     figs = adapt.figures(adapt.infer_bop(work, test, out / f"{name}_test", out / "cache", keep))
     return {"arm": name, "overrides": overrides, "step_seconds": step_s, "steps": steps,
             "train_minutes": train_s / 60, "curve": curve, "test_ap50": figs["box_ap50"],
-            "test_ap": figs["box_ap"]}
+            "test_ap": figs["box_ap"],
+            "test_ap50_any_part": any_part_ap50(test, out / f"{name}_test")}
+
+
+def any_part_ap50(test: pathlib.Path, results: pathlib.Path) -> float:
+    """The diagnostic box AP50 with any part's box counted right (found, maybe misnamed)."""
+    from threept_jax.eval.bop_eval import evaluate_results_file
+
+    (path,) = results.glob("*.json")
+    return evaluate_results_file(test, path, split="val_pbr", any_part=True)["bbox"]["ap50"]
 
 
 def yolo_arm(python: str, records: pathlib.Path, test: pathlib.Path, minutes: float,
@@ -91,8 +108,10 @@ def yolo_arm(python: str, records: pathlib.Path, test: pathlib.Path, minutes: fl
     scores = evaluate_results_file(test, work / "detections.json", split="val_pbr")
     box = scores["bbox"]
     info = json.loads((work / "yolo.json").read_text())
+    any_part = evaluate_results_file(test, work / "detections.json", split="val_pbr",
+                                     any_part=True)["bbox"]["ap50"]
     return {"arm": "yolov8n", "train_minutes": info["train_seconds"] / 60,
-            "test_ap50": box["ap50"], "test_ap": box["ap"]}
+            "test_ap50": box["ap50"], "test_ap": box["ap"], "test_ap50_any_part": any_part}
 
 
 def main(argv=None) -> None:
@@ -123,13 +142,15 @@ def main(argv=None) -> None:
         (args.out / "results.json").write_text(json.dumps(rows, indent=1))
     ref = rows[0]["test_ap50"]
     print(f"\n{args.minutes:g} CPU minutes each, test images of {args.test}:")
-    print("| arm | steps | train min | val AP50 by eval | test box AP50 / AP | AP50 / first |")
-    print("|---|---|---|---|---|---|")
+    print("| arm | steps | train min | val AP50 by eval | test box AP50 / AP | AP50 / first | "
+          "diagnostic: AP50 with any part |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
         curve = " / ".join(f"{c['val_ap50']:.3f}" for c in r.get("curve", []))
         ratio = r["test_ap50"] / ref if ref > 0 else float("nan")
         print(f"| {r['arm']} | {r.get('steps', '')} | {r['train_minutes']:.1f} | {curve} | "
-              f"{r['test_ap50']:.3f} / {r['test_ap']:.3f} | {ratio:.2f} |")
+              f"{r['test_ap50']:.3f} / {r['test_ap']:.3f} | {ratio:.2f} | "
+              f"{r['test_ap50_any_part']:.3f} |")
 
 
 if __name__ == "__main__":

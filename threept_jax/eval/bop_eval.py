@@ -335,8 +335,10 @@ def evaluate_detection_results(
     targets_path=None,
     models_subdir: str | None = None,
     sensor: str | None = None,
+    any_part: bool = False,
 ) -> dict[str, dict[str, float]]:
-    """2D AP (bbox and/or segm, whichever the detections carry) on a dataset."""
+    """2D AP (bbox and/or segm, whichever the detections carry) on a dataset;
+    ``any_part``: the diagnostic of :func:`threept_jax.eval.coco.evaluate_coco`."""
     dataset = BopDataset(dataset_dir)
     sp = dataset.split(split, sensor)
     targets, _ = resolve_targets(dataset, sp, targets_path)
@@ -350,7 +352,7 @@ def evaluate_detection_results(
     cats = set(dataset.models(models_subdir))
     for sid, iid in order:
         cats |= {g.obj_id for g in sp.scene(sid).gt_as_stored[iid]}
-    return evaluate_coco(detections, gt, sizes, order, sorted(cats))
+    return evaluate_coco(detections, gt, sizes, order, sorted(cats), any_part=any_part)
 
 
 def evaluate_results_file(dataset_dir, results_path, *, rotation_atol: float = 1e-3, **kwargs):

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import io
 from collections.abc import Mapping, Sequence
 
@@ -85,14 +86,23 @@ def evaluate_coco(
     image_order: Sequence[tuple[int, int]],
     category_ids: Sequence[int],
     iou_types: Sequence[str] = ("bbox", "segm"),
+    any_part: bool = False,
 ) -> dict[str, dict[str, float]]:
     """COCO AP / AP50 / AP75 for each iou type in ``iou_types`` ('bbox', 'segm').
+
+    ``any_part=True`` scores every detection against every instance whatever its part (one
+    category): a diagnostic that tells a detector that finds parts but names them wrongly
+    from one that does not find them; never the figure a user sees.
 
     ``gt`` maps (scene_id, im_id) to GT annotation dicts (see `coco_gt_annotation`; keys
     ``bbox``, ``segmentation``, ``area``, ``iscrowd``, ``bop_ignore``), ``image_sizes`` to
     (width, height), ``image_order`` lists the target images in the toolkit's merge order.
     Detections outside the target images are dropped; an iou type is skipped when no
     detection carries that field. Undefined AP (no GT at all) is reported as 0."""
+    if any_part:
+        detections = [dataclasses.replace(d, obj_id=1) for d in detections]
+        gt = {k: [dict(a, category_id=1) for a in v] for k, v in gt.items()}
+        category_ids = [1]
     img_ids = {key: n + 1 for n, key in enumerate(image_order)}
     images = [
         {"id": img_ids[k], "width": int(image_sizes[k][0]), "height": int(image_sizes[k][1])}
