@@ -35,14 +35,10 @@ ARMS = {
     "conv": {"model.stem": "conv"},  # early convolutions instead of the patch convolution
     "tile256": {"model.image_size": 256},  # 4x the pixels per part, 4x the tokens
     "lr3e-3": {"optim.learning_rate": 3e-3},  # a faster schedule for a 10-minute budget
-    # The conv stem (the adapt default) asked for another part at half the tiles: in a cell
-    # whose parts are in every image, every tile otherwise asks for the part it is centred on.
-    "other0.5": {"model.stem": "conv", "data.other_query_prob": 0.5},
-    "other0.8": {"model.stem": "conv", "data.other_query_prob": 0.8},
     # Capacity: the cpu config's mini/16 ViT (width 128, depth 4: 4x the parameters).
     "mini": {"model.stem": "conv", "model.variant": "mini/16"},
     # Positives by place (FCOS centre sampling) instead of Hungarian matching.
-    "centre": {"model.stem": "conv", "loss.assignment": "centre"},
+    "centre": {"model.stem": "conv", "loss.assignment": "centre", "loss.matches_per_target": 1},
 }
 
 

@@ -171,38 +171,6 @@ def test_negative_queries_are_absent_objects(toy):
         assert not out["mask"].any() and not out["ignore"].any()
 
 
-def test_other_queries_place_the_tile_on_another_part_and_keep_the_asked_parts_targets(toy):
-    table = banks.load_object_table(toy)
-    cfg = _cfg(negative_prob=0.0, other_query_prob=1.0, max_instances=8)
-    sampler = pl.SampleTile(cfg, pl.BankCache(table))
-    lo, hi = cfg.size_range
-    asked_absent = checked = 0
-    for i, ex in enumerate(_records(toy)):
-        for j in range(3):
-            out = sampler.random_map(ex, np.random.default_rng(100 * i + j))
-            assert not out["negative"]
-            A = out["K"].astype(np.float64) @ np.linalg.inv(ex["K"])
-            z = A[0, 0]
-            x0, y0 = 0.5 - (A[0, 2] + 0.5) / z, 0.5 - (A[1, 2] + 0.5) / z
-            boxes = (ex["bbox_obj"] - [x0, y0, x0, y0]) * z
-            sides = (boxes[:, 2:] - boxes[:, :2]).max(1)
-            whole = np.all((boxes >= -1e-3) & (boxes <= TILE + 1e-3), axis=1)
-            # Some instance of another part places the tile: whole inside, at a prior size.
-            anchors = (ex["obj_id"] != out["obj_id"]) & whole & (sides >= lo - 1e-3) & (
-                sides <= hi + 1e-3)
-            assert anchors.any()
-            # Every target is an instance of the part asked for, at its own amodal box.
-            asked = boxes[ex["obj_id"] == out["obj_id"]]
-            n = int((out["mask"] | out["ignore"]).sum())
-            for box in out["boxes"][:n]:
-                assert np.abs(asked - box).max(axis=1).min() < 1e-3
-            asked_absent += len(asked) == 0
-            checked += 1
-    assert checked >= 30 and asked_absent >= 1
-    with pytest.raises(ValueError, match="other_query_prob"):
-        _cfg(other_query_prob=1.5)
-
-
 def test_attach_renders_samples_positives_and_negatives(toy):
     table = banks.load_object_table(toy)
     cache = pl.BankCache(table)

@@ -8,9 +8,7 @@ Built from picklable grain transforms (usable in multiprocess workers) and
 1. :class:`DecodeExample` - record bytes -> annotated image.
 2. :class:`SampleTile` - picks the query object (an instance drawn with probability
    proportional to its ``visib_fract``; with probability ``negative_prob`` an object of the
-   object table absent from the image, whose targets are all empty so presence learns "no";
-   with probability ``other_query_prob`` the instance places the tile and another object of
-   the table is asked for),
+   object table absent from the image, whose targets are all empty so presence learns "no"),
    and a square crop resized to the tile that puts the anchor instance at a size drawn
    log-uniformly from the scale prior (128-350 px on a 512 tile, scaled by ``tile / 512``;
    size = longer side of the amodal box). Targets are every instance of the query object in
@@ -90,12 +88,6 @@ class ExampleConfig:
         stored); banks of another size raise (``banks.check_render_size``): renders are never
         resized, so training sees the images inference onboarding makes.
       negative_prob: probability of querying an object absent from the image.
-      other_query_prob: probability of querying, at a tile placed on one object's instance,
-        another object of the split (drawn uniformly, present in the image or not; its
-        instances in the tile are the targets, often none). When every part is in every image
-        (a cell of a few parts), absent-object negatives are rare and each tile is centred on
-        an instance of the part it asks for; a model then learns where parts are, not which
-        part is which (docs/training.md, "Asking for another part").
       scale_prior: anchor size range in pixels on a ``scale_reference`` tile.
       min_query_visib: an instance can be the query anchor when its visib_fract is at least
         this.
@@ -113,7 +105,6 @@ class ExampleConfig:
     max_symmetries: int = 64
     render_size: int | None = None
     negative_prob: float = 0.2
-    other_query_prob: float = 0.0
     scale_prior: tuple[float, float] = SCALE_PRIOR
     scale_reference: int = SCALE_REFERENCE_TILE
     min_query_visib: float = 0.1
@@ -136,8 +127,6 @@ class ExampleConfig:
                 f"max_instances={self.max_instances} targets; raise num_templates")
         if not 0.0 <= self.negative_prob < 1.0:
             raise ValueError(f"negative_prob must be in [0, 1), got {self.negative_prob}")
-        if not 0.0 <= self.other_query_prob <= 1.0:
-            raise ValueError(f"other_query_prob must be in [0, 1], got {self.other_query_prob}")
         lo, hi = self.scale_prior
         if not 0 < lo <= hi:
             raise ValueError(f"scale_prior must be (lo, hi) with 0 < lo <= hi, got "
@@ -309,11 +298,7 @@ class SampleTile(grain.transforms.RandomMap):
             anchor = int(np.argmax(visib))
             return int(obj_ids[anchor]), anchor, False
         anchor = int(rng.choice(cand, p=visib[cand] / visib[cand].sum()))
-        query = int(obj_ids[anchor])
-        others = self.negative_pool[self.negative_pool != query]
-        if cfg.other_query_prob > 0 and others.size and rng.random() < cfg.other_query_prob:
-            query = int(rng.choice(others))
-        return query, anchor, False
+        return int(obj_ids[anchor]), anchor, False
 
     def _choose_crop(self, ex, anchor, rng):
         cfg = self.config
