@@ -19,9 +19,10 @@ that with our own data engine, in stages that each resume when the command is ru
    that a resumed run keeps its learning-rate schedule.
 4. **Detector training** (``train.trainer_detector``), fine-tuning the shipped detector
    (``models/``, :mod:`infer.shipped`) by default, ``--from RUN``'s best checkpoint, or from
-   scratch (``--from scratch``); fine-tuning keeps the model section of the run it starts from. ``W`` is an ordinary run
-   directory (``config.json``, ``checkpoints/``, ``tb/``): ``python -m infer images --workdir
-   W`` loads it, and a killed run resumes from its last checkpoint.
+   scratch (``--from scratch``); fine-tuning keeps the model section of the run it starts
+   from. ``W`` is an ordinary run directory (``config.json``, ``checkpoints/``, ``tb/``):
+   ``python -m infer images --workdir W`` loads it, and a killed run resumes from its last
+   checkpoint.
 5. **Refiner training** (``train.trainer_refiner``, only with ``--refiner-minutes`` > 0; the
    default 0 trains none and the contour refiner refines the test): a 3PT-R run of
    ``--refiner-config`` (``train/configs/refiner.py``) from scratch on the same records ->
@@ -33,8 +34,9 @@ that with our own data engine, in stages that each resume when the command is ru
    the training-free contour refiner (``--refiner contour``) refines instead, as it does
    without ``--refiner-minutes``.
 6. **Test** (found done when ``W/report.json`` tested the same scenes with the same best
-   checkpoints and options): the best detector checkpoint (by full-image AP50 on the val scenes) runs ``python
-   -m infer bop`` on the val scenes, whose best-F1 score becomes the overlay threshold, then on
+   checkpoints and options): the best detector checkpoint (by full-image AP50 on the val
+   scenes) runs ``python -m infer bop`` on the val scenes, whose best-F1 score becomes the
+   overlay threshold, then on
    the test scenes: full images, every part queried, the best detections of an image whatever
    their score (as many as a scene holds instances at most, :func:`max_detections`), refined
    by ``W/refiner`` when one was trained and helps, else by the contour refiner. Box AP / AP50
