@@ -18,11 +18,16 @@ dataset's parts, the cell's depth range from its ``cell.json``:
 
 ``--no-depth-range`` drops the cell's depth range: what a user without a cell gets.
 
+``--ceiling`` (a diagnostic, not a result) asks what limits the AP, the search or the score:
+the share of ground-truth instances with a verified candidate of their part within IoU 0.5, and
+the box AP50 a perfect score would give (every right candidate ranked above every wrong one,
+the NMS across parts as the detector's) beside the calibrated score's, on the same candidates.
+
 This is the detector alone; the BOP 6D AP after refinement comes from ``python -m infer bop
 --detector templates --evaluate`` (docs/benchmarks.md).
 
     python bench/shape_search.py [--data DIR] [--images 8] [--per-image] [--no-depth-range]
-        [--by-parts] [--candidates 300] [--out F.json]
+        [--by-parts] [--ceiling] [--candidates 300] [--out F.json]
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ import pathlib
 import sys
 import time
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -46,6 +52,7 @@ from infer.refine import refine_objects  # noqa: E402
 from infer.shape_detect import ShapeSearchDetector  # noqa: E402
 from threept_jax.data import bop  # noqa: E402
 from threept_jax.eval.bop_eval import evaluate_detection_results  # noqa: E402
+from threept_jax.geometry.boxes import box_iou  # noqa: E402
 from threept_jax.pipeline import shape_search as ss  # noqa: E402
 
 
@@ -88,6 +95,39 @@ def stage_seconds(detector, image, K):
     return {"proposals": t1 - t, "response": t2 - t1, "total": t3 - t2, "num_proposals": len(boxes)}
 
 
+def ceiling(detector, data, split_name, split, keys):
+    """(share of instances with a right verified candidate, box AP50 of the calibrated score,
+    box AP50 of a perfect score) on the detector's candidates (module docstring)."""
+    ids = np.array([o.obj_id for o in detector.objects])
+    found, total, dets = 0, 0, {"score": [], "perfect": []}
+    for s, im in tqdm(keys, desc="ceiling", leave=False):
+        scene = split.scene(s)
+        image = scene.image(im)
+        c = detector.candidates(image, scene.cameras[im].K)
+        gt_ids = np.array([g.obj_id for g in scene.gt[im]])
+        h, w = image.shape[:2]
+        gt_box = np.array([[max(b[0], 0), max(b[1], 0), min(b[0] + b[2], w), min(b[1] + b[3], h)]
+                           for b in (i.bbox_obj for i in scene.gt_info[im])], np.float64)
+        total += len(gt_ids)
+        if c is None:
+            continue
+        iou = np.asarray(box_iou(c.xyxy, gt_box.reshape(-1, 4)))
+        hit = (iou >= 0.5) & (ids[c.obj][:, None] == gt_ids[None])  # [candidates, instances]
+        found += int(hit.any(0).sum())
+        score = np.asarray(ss.calibrated_score(c.features))
+        for name, rank in (("score", score), ("perfect", hit.any(1) + 0.5 * score)):
+            order = np.argsort(-rank)
+            xywh = [[float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])]
+                    for b in c.xyxy[order]]
+            keep = np.asarray(cv2.dnn.NMSBoxes(xywh, rank[order].tolist(), 0.0,
+                                               detector.settings.nms_iou), int).ravel()
+            dets[name] += [bop.Detection2D(s, im, int(ids[c.obj[order[k]]]),
+                                           float(rank[order[k]]), tuple(xywh[k]))
+                           for k in keep[:detector.max_detections]]
+    ap = {k: box_ap(data, split_name, v)[0] for k, v in dets.items()}
+    return found / max(total, 1), ap["score"], ap["perfect"]
+
+
 def seconds_by_parts(objects, split, keys, depth, settings, cache, counts=(1, 5, 10, 20)):
     """Warm seconds per image (median over ``keys``, after one call that compiles) with the
     first N parts of the dataset queried, for each N in ``counts`` (as many as there are)."""
@@ -122,6 +162,9 @@ def main(argv=None):
     p.add_argument("--cache-dir", type=pathlib.Path, default=DEFAULT_CACHE)
     p.add_argument("--by-parts", action="store_true",
                    help="also time 1, 5, 10 and 20 parts queried (the first N of the dataset)")
+    p.add_argument("--ceiling", action="store_true",
+                   help="diagnostic: instances with a right verified candidate, and the box "
+                        "AP50 a perfect score would give on the same candidates")
     p.add_argument("--out", type=pathlib.Path, default=None)
     args = p.parse_args(argv)
     if not args.data.exists():
@@ -170,6 +213,13 @@ def main(argv=None):
     if args.by_parts:
         result["templates"]["warm_s_by_parts"] = seconds_by_parts(
             objects, split, keys[:3], depth, settings, args.cache_dir / "contours")
+    if args.ceiling:
+        found, ap_score, ap_perfect = ceiling(detector, args.data, args.split, split, keys)
+        result["templates"]["ceiling"] = {"instances_verified": found,
+                                          "box_ap50_score": ap_score,
+                                          "box_ap50_perfect_score": ap_perfect}
+        print(f"diagnostic: {found:.0%} of the instances have a right verified candidate; box "
+              f"AP50 {ap_score:.3f} with the score, {ap_perfect:.3f} with a perfect score")
     if not (args.no_3pt or args.per_image):
         models = infer.load(cache_dir=args.cache_dir, detector="3pt")
         onboarded = models.onboard(meshes)
