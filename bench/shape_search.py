@@ -27,7 +27,7 @@ This is the detector alone; the BOP 6D AP after refinement comes from ``python -
 --detector templates --evaluate`` (docs/benchmarks.md).
 
     python bench/shape_search.py [--data DIR] [--images 8] [--per-image] [--no-depth-range]
-        [--by-parts] [--ceiling] [--candidates 300] [--out F.json]
+        [--by-parts] [--ceiling] [--templates-score FILE] [--candidates 300] [--out F.json]
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ sys.path.insert(0, str(ROOT))
 import infer  # noqa: E402
 from infer.api import DEFAULT_CACHE  # noqa: E402
 from infer.refine import refine_objects  # noqa: E402
-from infer.shape_detect import ShapeSearchDetector  # noqa: E402
+from infer.shape_detect import ShapeSearchDetector, load_score_weights  # noqa: E402
 from threept_jax.data import bop  # noqa: E402
 from threept_jax.eval.bop_eval import evaluate_detection_results  # noqa: E402
 from threept_jax.geometry.boxes import box_iou  # noqa: E402
@@ -114,7 +114,7 @@ def ceiling(detector, data, split_name, split, keys):
         iou = np.asarray(box_iou(c.xyxy, gt_box.reshape(-1, 4)))
         hit = (iou >= 0.5) & (ids[c.obj][:, None] == gt_ids[None])  # [candidates, instances]
         found += int(hit.any(0).sum())
-        score = np.asarray(ss.calibrated_score(c.features))
+        score = np.asarray(ss.calibrated_score(c.features, detector.score_weights[c.obj]))
         for name, rank in (("score", score), ("perfect", hit.any(1) + 0.5 * score)):
             order = np.argsort(-rank)
             xywh = [[float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])]
@@ -162,6 +162,9 @@ def main(argv=None):
     p.add_argument("--cache-dir", type=pathlib.Path, default=DEFAULT_CACHE)
     p.add_argument("--by-parts", action="store_true",
                    help="also time 1, 5, 10 and 20 parts queried (the first N of the dataset)")
+    p.add_argument("--templates-score", type=pathlib.Path, default=None, metavar="FILE",
+                   help="the cell's own score calibration (python -m train.templates_score "
+                        "--cell DATA --out FILE; never fitted on the images evaluated here)")
     p.add_argument("--ceiling", action="store_true",
                    help="diagnostic: instances with a right verified candidate, and the box "
                         "AP50 a perfect score would give on the same candidates")
@@ -181,11 +184,12 @@ def main(argv=None):
                               ("max_proposals", args.proposals)) if v is not None}
     settings = dataclasses.replace(settings, **over)
 
+    weights = None if args.templates_score is None else load_score_weights(args.templates_score)
     t = time.perf_counter()
     objects = refine_objects(meshes)
     detector = ShapeSearchDetector(objects, depth_range=depth, score_threshold=0.0,
                                    max_detections=30, settings=settings,
-                                   cache_dir=args.cache_dir / "contours")
+                                   cache_dir=args.cache_dir / "contours", score_weights=weights)
     onboard = (time.perf_counter() - t) / len(objects)
     per_image = None
     if args.per_image:
@@ -194,12 +198,14 @@ def main(argv=None):
         def per_image(ids):
             return ShapeSearchDetector([by_id[i] for i in ids], depth_range=depth,
                                        score_threshold=0.0, max_detections=30,
-                                       settings=settings, cache_dir=args.cache_dir / "contours")
+                                       settings=settings, cache_dir=args.cache_dir / "contours",
+                                       score_weights=weights)
     dets, seconds = run(detector.detect, split, keys, per_image)
     scene = split.scene(keys[-1][0])
     stages = stage_seconds(detector, scene.image(keys[-1][1]), scene.cameras[keys[-1][1]].K)
     ap50, ap = box_ap(args.data, args.split, dets)
     result = {"data": str(args.data), "images": len(keys), "parts": len(objects),
+              "templates_score": None if weights is None else str(args.templates_score),
               "per_image": args.per_image,
               "depth_range": depth,
               "settings": {k: v for k, v in dataclasses.asdict(settings).items()

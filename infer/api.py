@@ -38,7 +38,7 @@ from infer.onboarding import ONBOARD_TEMPLATES, OnboardedObject, Onboarder
 from infer.refine import RefinedPose, SceneRefiner, refine_objects
 from infer.scene import Instances, find_instances, render_masks
 from infer.shape_detect import SCORE_THRESHOLD as TEMPLATES_SCORE_THRESHOLD
-from infer.shape_detect import ShapeSearchDetector
+from infer.shape_detect import ShapeSearchDetector, load_score_weights
 from infer.shipped import CONTOUR, default_refiner, shipped
 from threept_jax.data.bop import Camera
 from threept_jax.geometry.validate import validate_intrinsics
@@ -84,7 +84,9 @@ class Models:
         (``load(refiner="contour")``, :class:`infer.contour_refine.ContourRefiner`); None: no
         refinement.
       shape_search: the training-free detector's settings (``load(detector="templates")``,
-        :class:`infer.shape_detect.ShapeSearchDetector`), None with 3PT-D.
+        :class:`infer.shape_detect.ShapeSearchDetector`), None with 3PT-D; templates_score: its
+        per-part score weights of a cell's calibration (``load(templates_score=FILE)``), None:
+        the shared ones.
     """
 
     detector: Detector | None
@@ -97,6 +99,7 @@ class Models:
     refine_settings: RefineSettings | None = None
     cache_dir: pathlib.Path | None = None
     shape_search: ShapeSearchSettings | None = None
+    templates_score: dict[int, tuple[float, ...]] | None = None
     # Per-object-set caches; not init fields, so a dataclasses.replace starts empty ones.
     _scene_detectors: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
     _pose_renderers: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
@@ -146,7 +149,8 @@ class Models:
                                      "detector searches the whole image: drop it")
                 cache = None if self.cache_dir is None else self.cache_dir / "contours"
                 self._scene_detectors[key] = ShapeSearchDetector(
-                    objects, settings=self.shape_search, cache_dir=cache, **options)
+                    objects, settings=self.shape_search, cache_dir=cache,
+                    score_weights=self.templates_score, **options)
             else:
                 self._scene_detectors[key] = SceneDetector(self.detector, self.config, objects,
                                                            **options)
@@ -162,7 +166,8 @@ class Models:
 
 def load(workdir=None, step: int | str = "best", *, refiner=None,
          refiner_step: int | str = "best", cache_dir=DEFAULT_CACHE,
-         num_templates: int = ONBOARD_TEMPLATES, detector: str | None = None) -> Models:
+         num_templates: int = ONBOARD_TEMPLATES, detector: str | None = None,
+         templates_score=None) -> Models:
     """The models inference runs: a detector and a refiner.
 
     ``detector``: ``"templates"``, the training-free detector
@@ -180,7 +185,12 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
     (:func:`infer.shipped.default_refiner`: the shipped 3PT-R when one ships, else the contour
     refiner); with a ``workdir``, none. A missing or damaged shipped file raises an error
     naming it and how to restore it. Drop a refiner with ``dataclasses.replace(models,
-    refiner=None)``."""
+    refiner=None)``.
+
+    ``templates_score``: a cell's calibration of the templates detector's score (the file
+    ``python -m train.templates_score --cell DATA`` writes: a logistic model per part, fitted
+    on scenes of the cell's own parts; docs/inference.md, "Which detector"), or None: the
+    shared weights fitted on cells of other parts."""
     if detector is None:
         detector = default_detector(workdir)
     if detector not in DETECTORS:
@@ -194,8 +204,13 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
             workdir = shipped("detector")
     cache = None if cache_dir is None else pathlib.Path(cache_dir)
     models = Models(None, None, None, None, cache_dir=cache)
+    if templates_score is not None and detector != "templates":
+        raise ValueError("templates_score calibrates the templates detector; 3PT-D scores with "
+                         "its network: drop it or pass detector='templates'")
     if detector == "templates":
         models.shape_search = ShapeSearchSettings()
+        if templates_score is not None:
+            models.templates_score = load_score_weights(templates_score)
     else:
         model, cfg, step = load_detector(workdir, step)
         model_id = f"{pathlib.Path(workdir).resolve()}@{step}"

@@ -92,6 +92,11 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
                         "poses verified by the contour refiner; one view); 3pt: the 3PT-D "
                         "network of --workdir, default the shipped one (needed for a rig's "
                         "views). Default: 3pt with --workdir, else templates")
+    p.add_argument("--templates-score", type=pathlib.Path, default=None, metavar="FILE",
+                   help="the templates detector's score calibrated on the cell's own parts "
+                        "(python -m train.templates_score --cell DATA --out FILE: a logistic "
+                        "model per part, no network); default: the shared score, fitted on "
+                        "cells of other parts")
     p.add_argument("--step", type=checkpoint_step, default="best",
                    help="checkpoint: best, latest or a step number")
     p.add_argument("--num-templates", type=int_at_least(1), default=ONBOARD_TEMPLATES,
@@ -175,13 +180,17 @@ def load_models(args, detector: bool = True):
     if kind == "templates" and args.workdir is not None:
         raise ValueError("--workdir is a 3PT-D run; --detector templates needs no network: "
                          "drop one of them")
+    if getattr(args, "templates_score", None) is not None and kind != "templates":
+        raise ValueError("--templates-score calibrates the templates detector; 3PT-D scores "
+                         "with its network: drop it or pass --detector templates")
     if not detector and refiner is None:
         raise ValueError("no model to load: --refiner none leaves this command nothing to run; "
                          "drop it (the default refiner) or pass --refiner contour|RUN")
     workdir = (args.workdir or shipped("detector")) if detector and kind == "3pt" else None
     models = load(workdir, args.step, refiner=refiner,
                   refiner_step=getattr(args, "refiner_step", "best"), cache_dir=args.cache_dir,
-                  num_templates=args.num_templates, detector=kind if detector else None)
+                  num_templates=args.num_templates, detector=kind if detector else None,
+                  templates_score=args.templates_score if detector else None)
     return models if refining else dataclasses.replace(models, refiner=None)
 
 

@@ -11,6 +11,11 @@ scores and its outline's shape and surroundings
 (:func:`~threept_jax.pipeline.shape_search.calibrated_score`, fitted by ``python -m
 train.templates_score`` on cells of parts no evaluation uses).
 
+A cell can calibrate the score on scenes of its own parts (``python -m train.templates_score
+--cell DATA``: a logistic model per part, no network): :func:`load_score_weights` reads the
+file it writes, ``ShapeSearchDetector(score_weights=...)`` scores each part's candidates with
+its weights (``--templates-score FILE`` on the commands).
+
 Building it renders each mesh's contour views once (the contour refiner's cache under
 ``cache_dir``, a few seconds per mesh on 2 CPU cores); the first image of a size compiles the
 template fit and the verification (cold), later images reuse them (warm).
@@ -18,9 +23,10 @@ template fit and the verification (cold), later images reuse them (warm).
 
 from __future__ import annotations
 
+import json
 import os
 import pathlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import NamedTuple
 
 import cv2
@@ -33,6 +39,8 @@ from infer.detect import Detection, Detections
 from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.pipeline.contour import stack_contours
 from threept_jax.pipeline.shape_search import (
+    FEATURES,
+    SCORE_WEIGHTS,
     ShapeSearchSettings,
     calibrated_score,
     fit_templates,
@@ -56,6 +64,35 @@ MIN_DIAMETER_PX = 32.0
 SCORE_THRESHOLD = 0.4
 
 
+def load_score_weights(path: str | os.PathLike) -> dict[int, tuple[float, ...]]:
+    """``{obj_id: weights}`` of a cell's score calibration (the JSON ``python -m
+    train.templates_score --cell`` writes), checked: its features must be this version's
+    :data:`~threept_jax.pipeline.shape_search.FEATURES` and every weight finite."""
+    path = pathlib.Path(path)
+    refit = f"refit it: python -m train.templates_score --cell DATA --out {path}"
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"templates score file {path} not found: {refit}") from None
+    except (OSError, ValueError) as e:
+        raise ValueError(f"templates score file {path} is not readable JSON ({e}): {refit}"
+                         ) from None
+    if not isinstance(data, dict) or not isinstance(data.get("parts"), dict):
+        raise ValueError(f"{path} has no 'parts' (obj_id -> weights): it is not a cell "
+                         f"calibration; {refit}")
+    if data.get("features") != [*FEATURES, "bias"]:
+        raise ValueError(f"{path} was fitted on the features {data.get('features')}, this "
+                         f"version scores {[*FEATURES, 'bias']}: {refit}")
+    out = {}
+    for k, w in data["parts"].items():
+        w = np.asarray(w, np.float64)
+        if w.shape != (len(FEATURES) + 1,) or not np.isfinite(w).all():
+            raise ValueError(f"{path}: the weights of part {k} must be {len(FEATURES) + 1} "
+                             f"finite numbers, got {data['parts'][k]}: {refit}")
+        out[int(k)] = tuple(float(v) for v in w)
+    return out
+
+
 class Candidates(NamedTuple):
     """Verified candidates of one image, before scoring and NMS: refined poses [n, 4, 4]
     T_cam_obj, ``obj`` [n] (rows of the detector's ``objects``), outline boxes ``xyxy`` [n, 4]
@@ -72,12 +109,15 @@ class ShapeSearchDetector:
     docstring). ``depth_range``: (zmin, zmax) mm of the objects' centres from the camera (a
     cell's ``cell.json``); None: any distance at which an object appears 32 px to the image's
     size. ``score_threshold``: score a detection must exceed (:data:`SCORE_THRESHOLD`);
-    ``max_detections`` per image."""
+    ``max_detections`` per image. ``score_weights``: ``{obj_id: weights}`` of a cell's own
+    calibration (:func:`load_score_weights`); parts it lacks (and without it, all) are scored
+    with the shared :data:`~threept_jax.pipeline.shape_search.SCORE_WEIGHTS`."""
 
     def __init__(self, objects: Sequence, *, depth_range: tuple[float, float] | None = None,
                  score_threshold: float = SCORE_THRESHOLD, max_detections: int = 100,
                  settings: ShapeSearchSettings | None = None,
-                 cache_dir: str | os.PathLike | None = None):
+                 cache_dir: str | os.PathLike | None = None,
+                 score_weights: Mapping[int, Sequence[float]] | None = None):
         if not objects:
             raise ValueError("no objects to detect: give at least one mesh")
         if depth_range is not None:
@@ -89,6 +129,14 @@ class ShapeSearchDetector:
         self.score_threshold = float(score_threshold)
         self.max_detections = int(max_detections)
         self.settings = settings or ShapeSearchSettings()
+        weights = [np.ravel(np.asarray((score_weights or {}).get(o.obj_id, SCORE_WEIGHTS),
+                                       np.float64)) for o in self.objects]
+        for o, w in zip(self.objects, weights):
+            if len(w) != len(FEATURES) + 1 or not np.isfinite(w).all():
+                raise ValueError(f"the score weights of part {o.obj_id} must be "
+                                 f"{len(FEATURES) + 1} finite numbers ({', '.join(FEATURES)}, "
+                                 f"bias), got {w.tolist()}")
+        self.score_weights = np.stack(weights)  # [O, F + 1]
         cache = None if cache_dir is None else pathlib.Path(cache_dir)
         contours = [_cached_contours(o.mesh, cache) for o in self.objects]
         self.model = stack_contours(contours)
@@ -167,7 +215,7 @@ class ShapeSearchDetector:
         if c is None:
             return Detections()
         s = self.settings
-        scores = np.asarray(calibrated_score(c.features))
+        scores = np.asarray(calibrated_score(c.features, self.score_weights[c.obj]))
         refined, obj, xyxy = c.poses, c.obj, c.xyxy
         finite = np.isfinite(scores) & np.isfinite(xyxy).all(1)
         order = [i for i in np.argsort(-np.where(finite, scores, -np.inf)) if finite[i]]

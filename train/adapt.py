@@ -300,18 +300,20 @@ def max_detections(instances: int) -> int:
 def infer_bop(workdir: pathlib.Path | None, dataset: pathlib.Path, out: pathlib.Path,
               cache: pathlib.Path, max_detections: int, overlays: int = 0,
               overlay_threshold: float | None = None, refiner: pathlib.Path | str | None = None,
-              obj_ids: Sequence[int] = (), targets: str = "all") -> dict:
+              obj_ids: Sequence[int] = (), targets: str = "all",
+              templates_score: pathlib.Path | None = None) -> dict:
     """``python -m infer bop --evaluate`` (``infer.bop_runner.run_bop``, called in this process)
     of the best detector checkpoint of ``workdir`` (None: the training-free templates detector,
-    ``--detector templates``), and of ``refiner`` when given (a run's best checkpoint or
-    ``"contour"``), on ``dataset``'s ``val_pbr`` images, the ``max_detections`` best detections
-    of an image whatever their score; every object of the dataset queried, or ``obj_ids``;
+    ``--detector templates``, scored with the cell's calibration ``templates_score`` when
+    given), and of ``refiner`` when given (a run's best checkpoint or ``"contour"``), on
+    ``dataset``'s ``val_pbr`` images, the ``max_detections`` best detections of an image
+    whatever their score; every object of the dataset queried, or ``obj_ids``;
     ``targets="bop19"``: each image queried with the objects of its BOP19 targets."""
     from infer.bop_runner import run_bop
     from infer.cli import bop_args
 
-    detector = (dict(detector="templates") if workdir is None else
-                dict(workdir=pathlib.Path(workdir), step="best", num_templates=512))
+    detector = (dict(detector="templates", templates_score=templates_score) if workdir is None
+                else dict(workdir=pathlib.Path(workdir), step="best", num_templates=512))
     return run_bop(bop_args(
         dataset, out, **detector, split="val_pbr", targets=targets, evaluate=True,
         score_threshold=0.0, max_detections=max_detections, overlays=overlays,
@@ -414,18 +416,21 @@ def refiner_lines(h: dict) -> list[str]:
 
 def test(workdir: pathlib.Path | None, data: pathlib.Path, out: pathlib.Path,
          cache: pathlib.Path, overlays: int, instances: int,
-         refiner: pathlib.Path | str | None = None) -> dict:
-    """The best checkpoint of ``workdir`` (None: the training-free templates detector) on
-    ``data/val`` (whose best-F1 score becomes the
-    overlay threshold; detection alone, no refinement) and on ``data/test``, refined by
-    ``refiner`` when given, scenes generated with ``--instances instances``: figures,
-    threshold and the overlays' folder."""
+         refiner: pathlib.Path | str | None = None,
+         templates_score: pathlib.Path | None = None) -> dict:
+    """The best checkpoint of ``workdir`` (None: the training-free templates detector, with the
+    cell's score calibration ``templates_score`` when given) on ``data/val`` (whose best-F1
+    score becomes the overlay threshold; detection alone, no refinement) and on ``data/test``,
+    refined by ``refiner`` when given, scenes generated with ``--instances instances``:
+    figures, threshold and the overlays' folder."""
     keep = max_detections(instances)
-    val = figures(infer_bop(workdir, data / "val", out / "val", cache, keep))
+    val = figures(infer_bop(workdir, data / "val", out / "val", cache, keep,
+                            templates_score=templates_score))
     threshold = val["box_f1_threshold"]
     print(f"   overlay threshold {threshold:.3f} (best F1 {val['box_f1']:.3f} on the val scenes)")
     result = figures(infer_bop(workdir, data / "test", out / "test", cache, keep,
-                               overlays=overlays, overlay_threshold=threshold, refiner=refiner))
+                               overlays=overlays, overlay_threshold=threshold, refiner=refiner,
+                               templates_score=templates_score))
     return {"test": result, "val": val, "overlay_threshold": threshold,
             "refiner": None if refiner is None else str(refiner),
             "overlays": str(out / "test" / "overlays")}

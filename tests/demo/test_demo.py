@@ -29,8 +29,9 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
         return {"test": _figures(0.3, refined=True), "refiner": str(w / "refiner"),
                 "overlays": str(w / "test" / "overlays")}
 
-    def fake_test(workdir, data, out, cache, overlays, instances, refiner=None):
-        calls[out.name] = (workdir, data, refiner)
+    def fake_test(workdir, data, out, cache, overlays, instances, refiner=None,
+                  templates_score=None):
+        calls[out.name] = (workdir, data, refiner, templates_score)
         # A worse "after" than "before" is reported as it is.
         return {"test": _figures(0.05, refined=refiner is not None),
                 "overlays": str(out / "test" / "overlays")}
@@ -42,23 +43,37 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
     monkeypatch.setattr(adapt, "main", fake_main)
     monkeypatch.setattr(adapt, "generate", lambda *a, **k: None)
     monkeypatch.setattr(adapt, "test", fake_test)
+
+    def fake_calibrate(data, split, cache):
+        calls["calibrate"] = data
+        return {"parts": {"1": [0.0] * 9}}
+
+    from train import templates_score
+
+    monkeypatch.setattr(templates_score, "calibrate_cell", fake_calibrate)
     report = demo.main(["--out", str(tmp_path / "out")])
 
     argv = calls["adapt"]
     assert float(argv[argv.index("--refiner-minutes") + 1]) > 0  # a refiner by default
     assert argv[argv.index("--from") + 1] == "scratch"  # the tiny detector of a few minutes
     # The zero-shot parts meet the shipped models, as a user who installs threept_jax does.
-    assert calls["zero_shot"][::2] == (models["detector"], models["refiner"])
+    assert calls["zero_shot"][:3:2] == (models["detector"], models["refiner"])
     # No training: the templates detector (no workdir) on the adapted setting's own scenes,
-    # refined by the contour refiner.
-    assert calls["no_training"] == (None, tmp_path / "out" / "adapted" / "data", "contour")
+    # refined by the contour refiner; calibrated: the same, with the score fitted on the
+    # adapted setting's training scenes (never its test scenes), written where it reads it.
+    data = tmp_path / "out" / "adapted" / "data"
+    assert calls["no_training"] == (None, data, "contour", None)
+    score_file = tmp_path / "out" / "calibrated" / "templates_score.json"
+    assert calls["calibrate"] == data / "train"
+    assert calls["calibrated"] == (None, data, "contour", score_file)
+    assert json.loads(score_file.read_text()) == {"parts": {"1": [0.0] * 9}}
     saved = json.loads((tmp_path / "out" / "report.json").read_text())
-    for setting in ("adapted", "no_training", "zero_shot"):
+    for setting in ("adapted", "no_training", "calibrated", "zero_shot"):
         assert saved[setting]["test"]["pose_ap_initial"] == pytest.approx(0.1)
         assert saved[setting]["test"]["pose_ap_mm_initial"] == pytest.approx(0.1)
     assert report["zero_shot"]["test"]["pose_ap"] == pytest.approx(0.05)
     out = capsys.readouterr().out.split("done in")[1]
-    assert out.count("before refinement: 6D AP 0.100, AP-mm 0.100, segm AP 0.100") == 3
+    assert out.count("before refinement: 6D AP 0.100, AP-mm 0.100, segm AP 0.100") == 4
     assert "after refinement:  6D AP 0.300, AP-mm 0.150, segm AP 0.250" in out
     assert "after refinement:  6D AP 0.050, AP-mm 0.025, segm AP 0.250" in out
 
@@ -80,9 +95,12 @@ def test_without_a_trained_refiner_the_contour_refiner_refines(tmp_path, monkeyp
         return {"test": _figures(0.05, refined=refiner is not None), "overlays": "o"}
 
     monkeypatch.setattr(adapt, "test", fake_test)
+    from train import templates_score
+
+    monkeypatch.setattr(templates_score, "calibrate_cell", lambda *a: {"parts": {}})
     demo.main(["--out", str(tmp_path)])
-    assert seen == ["contour", "contour"]  # no training, then zero-shot
+    assert seen == ["contour"] * 3  # no training, calibrated, then zero-shot
     out = capsys.readouterr().out.split("done in")[1]
-    assert out.count("before refinement: 6D AP 0.100") == 3
+    assert out.count("before refinement: 6D AP 0.100") == 4
     assert "the trained refiner is not used (it does not make held-out poses better): the " \
            "contour refiner refines instead" in out

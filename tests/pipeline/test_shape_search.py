@@ -441,3 +441,83 @@ def test_score_weights_are_recovered_from_a_known_logistic_model():
                                atol=0.05)
     row = np.array([[0.5, 0.5, 0.5, 1.0, 0.0, 1.0, 0.0, 0.5]])  # z = 2 - 1 - 1 - 3
     np.testing.assert_allclose(S.calibrated_score(row, w), [1 / (1 + np.exp(3.0))], rtol=1e-9)
+
+
+def test_part_weights_are_recovered_per_part():
+    """Two parts' candidates drawn from two known logistic models (a third part with three
+    right candidates): ``fit_part_weights`` returns each part's model (within a few standard
+    errors) and leaves the third out; ``calibrated_score`` with one row of weights per
+    candidate is each row's own model, checked by hand."""
+    rng = np.random.default_rng(5)
+    n = 30000
+    F = len(S.FEATURES)
+
+    def draw(m):
+        return np.column_stack([rng.uniform(0.05, 0.95, (m, 3)), rng.uniform(0.5, 1.0, m),
+                                rng.uniform(0.0, 0.6, m), rng.uniform(0.1, 1.0, m),
+                                rng.uniform(3.0, 6.0, m), rng.uniform(0.0, 0.8, m)])
+
+    logit = lambda p: np.log(p / (1 - p))  # noqa: E731
+    truth = {3: np.array([0.8, -0.4, 1.2, 2.0, 3.0, -1.0, 0.5, -2.0, -3.0]),
+             8: np.array([-0.5, 1.0, 0.3, -1.5, -2.0, 2.5, -0.5, 1.5, 1.0])}
+    feats, right, parts = [], [], []
+    for p, w in truth.items():
+        f = draw(n)
+        z = logit(f[:, :3]) @ w[:3] + f[:, 3:] @ w[3:F] + w[F]
+        feats.append(f)
+        right.append(rng.random(n) < 1 / (1 + np.exp(-z)))
+        parts.append(np.full(n, p))
+    feats.append(draw(50))
+    right.append(np.arange(50) < 3)  # part 9: too few right candidates to fit
+    parts.append(np.full(50, 9))
+    got = S.fit_part_weights(np.concatenate(feats), np.concatenate(right),
+                             np.concatenate(parts), l2=0.0)
+    assert sorted(got) == [3, 8]
+    for p, w in truth.items():
+        np.testing.assert_allclose(got[p][:-1], w[:-1], atol=0.3)
+        np.testing.assert_allclose(got[p][-1], w[-1], atol=0.8)
+    rows = np.array([[0.5, 0.5, 0.5, 1.0, 0.0, 1.0, 0.0, 0.5]] * 2)
+    # Row 0 with part 3's weights: z = 2 - 1 - 1 - 3; row 1 with part 8's: -1.5 + 2.5 + 0.75 + 1.
+    np.testing.assert_allclose(S.calibrated_score(rows, np.stack([truth[3], truth[8]])),
+                               1 / (1 + np.exp([3.0, -2.75])), rtol=1e-9)
+
+
+def test_a_cells_score_calibration_scores_its_parts(scene, tmp_path):
+    """A calibration file whose part 1 scores every candidate logit(0.77) (zero weights, that
+    bias): every detection of part 1 scores 0.77, part 2 keeps the shared weights; the file
+    goes through ``infer.load(templates_score=)``; a file of other features, a wrong length,
+    a missing file or a 3PT-D load are refused with what to do."""
+    img, _, objects, _ = scene
+    F = len(S.FEATURES)
+    constant = [0.0] * F + [float(np.log(0.77 / 0.23))]
+    path = tmp_path / "cell_score.json"
+    path.write_text(json.dumps({"features": [*S.FEATURES, "bias"],
+                                "parts": {"1": constant, "7": constant}}))
+    models = infer.load(detector="templates", refiner=None, cache_dir=None,
+                        templates_score=path)
+    assert models.templates_score == {1: tuple(constant), 7: tuple(constant)}
+    models.shape_search = SMALL
+    detector = models.scene_detector(objects, depth_range=(330.0, 500.0), score_threshold=0.0,
+                                     max_detections=50)
+    c = detector.candidates(img, K)
+    shared = S.calibrated_score(c.features[c.obj == 1], S.SCORE_WEIGHTS)  # row 1: part 2
+    found = detector.detect(img, K)
+    assert {d.obj_id for d in found} == {1, 2}
+    for d in found:
+        if d.obj_id == 1:
+            assert d.score == pytest.approx(0.77, abs=1e-9)
+        else:
+            assert np.min(np.abs(shared - d.score)) < 1e-9
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"features": ["contour", "bias"], "parts": {"1": [0.0, 1.0]}}))
+    with pytest.raises(ValueError, match="fitted on the features"):
+        infer.load(detector="templates", cache_dir=None, templates_score=bad)
+    bad.write_text(json.dumps({"features": [*S.FEATURES, "bias"], "parts": {"1": [0.0]}}))
+    with pytest.raises(ValueError, match="part 1 must be"):
+        infer.load(detector="templates", cache_dir=None, templates_score=bad)
+    with pytest.raises(FileNotFoundError, match="train.templates_score --cell"):
+        infer.load(detector="templates", cache_dir=None, templates_score=tmp_path / "no.json")
+    with pytest.raises(ValueError, match="calibrates the templates detector"):
+        infer.load(detector="3pt", cache_dir=None, templates_score=path)
+    with pytest.raises(ValueError, match="score weights of part 2"):
+        ShapeSearchDetector(objects, score_weights={2: [1.0, 2.0]})

@@ -24,8 +24,9 @@ every learned detector must beat). Four stages per image:
    model of :func:`outline_features` (contour and template scores, the outline's LINE-2D
    similarity, thinness, elongation, size and the clutter around it) whose
    :data:`SCORE_WEIGHTS` were fitted on cells of other parts (``python -m
-   train.templates_score``); the refined poses' boxes are merged by NMS across parts (one
-   part per place).
+   train.templates_score``), or per part on scenes of a cell's own parts
+   (:func:`fit_part_weights`, ``python -m train.templates_score --cell``); the refined poses'
+   boxes are merged by NMS across parts (one part per place).
 
 Shapes: O objects, R templates per object (views x in-plane turns), n outline points per
 template, B proposals, k templates kept per proposal.
@@ -362,9 +363,10 @@ def score_inputs(features: np.ndarray) -> np.ndarray:
 def calibrated_score(features: np.ndarray, weights=SCORE_WEIGHTS) -> np.ndarray:
     """[P] the probability that each verified candidate (:func:`outline_features` [P, F]) is
     a right detection (its part, box IoU >= 0.5), by a logistic model over
-    :func:`score_inputs` with ``weights`` (F + 1: the last is the bias)."""
+    :func:`score_inputs` with ``weights`` [F + 1] (the last is the bias), or [P, F + 1]: each
+    candidate its own (its part's, :func:`fit_part_weights`)."""
     w = np.asarray(weights, np.float64)
-    z = score_inputs(features) @ w[:-1] + w[-1]
+    z = np.sum(score_inputs(features) * w[..., :-1], -1) + w[..., -1]
     return 1.0 / (1.0 + np.exp(-z))
 
 
@@ -388,6 +390,28 @@ def fit_score_weights(features: np.ndarray, right: np.ndarray, l2: float = 1e-2)
 
     w = minimize(loss, np.zeros(Z.shape[1]), jac=True, method="L-BFGS-B").x
     return np.concatenate([w[:-1] / sd, [w[-1] - np.sum(w[:-1] * mu / sd)]])
+
+
+#: Fewest right (and wrong) candidates of a part for :func:`fit_part_weights` to fit its own
+#: weights.
+MIN_PER_PART = 10
+
+
+def fit_part_weights(features: np.ndarray, right: np.ndarray, parts: np.ndarray,
+                     l2: float = 1e-2, min_count: int = MIN_PER_PART) -> dict[int, np.ndarray]:
+    """{part: [F + 1]} the weights of :func:`calibrated_score` fitted on each part's candidates
+    alone (:func:`fit_score_weights` per part; ``parts`` [P] the candidates' parts): a cell's
+    calibration on scenes of its own parts, where what a right candidate looks like differs
+    from part to part (a plate's outline is as elongated as the tray's squares seen
+    obliquely, a gear's is round). A part with fewer than ``min_count`` right or wrong
+    candidates is left out: it keeps the shared weights."""
+    features, right, parts = np.asarray(features), np.asarray(right, bool), np.asarray(parts)
+    out = {}
+    for p in np.unique(parts):
+        mine = parts == p
+        if min(right[mine].sum(), (~right[mine]).sum()) >= min_count:
+            out[int(p)] = fit_score_weights(features[mine], right[mine], l2)
+    return out
 
 
 @functools.partial(jax.jit, static_argnames=("settings", "lines"))
