@@ -229,7 +229,13 @@ def test_fit_finds_the_template_depth_and_centre_of_a_rendered_box():
 
 
 @pytest.fixture(scope="module")
-def scene():
+def cache(tmp_path_factory):
+    """A cache folder whose contour models the scene's detector writes and others read."""
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="module")
+def scene(cache):
     box, cyl = _box_mesh(), _cylinder_mesh()
     T_box = _pose(Rotation.from_euler("xyz", [20, -15, 30], degrees=True).as_matrix(),
                   (95.0, 120.0), 400.0)
@@ -238,7 +244,8 @@ def scene():
     img = _render([(box, T_box), (cyl, T_cyl)], _background(1))
     objects = [RefineObject(1, box, np.eye(4)[None]), RefineObject(2, cyl, np.eye(4)[None])]
     detector = ShapeSearchDetector(objects, depth_range=(330.0, 500.0), score_threshold=0.1,
-                                   max_detections=10, settings=SMALL)
+                                   max_detections=10, settings=SMALL,
+                                   cache_dir=cache / "contours")
     return img, {1: T_box, 2: T_cyl}, objects, detector
 
 
@@ -279,12 +286,12 @@ def test_featureless_images_give_no_detections(scene):
         assert len(detector.detect(np.full(HW + (3,), value, np.uint8), K)) == 0
 
 
-def test_noisy_featureless_images_give_no_detections_at_the_default_threshold(scene):
+def test_noisy_featureless_images_give_no_detections_at_the_default_threshold(scene, cache):
     """A dark or grey image with sensor noise, or uniform noise: no box at the default score
     threshold (at 0.1 such images gave 50-60), where the rendered parts are still found."""
     img, truth, objects, _ = scene
     detector = ShapeSearchDetector(objects, depth_range=(330.0, 500.0), max_detections=10,
-                                   settings=SMALL)
+                                   settings=SMALL, cache_dir=cache / "contours")
     assert detector.score_threshold == 0.4
     rng = np.random.default_rng(0)
     for noisy in (10 + rng.normal(0, 3, HW + (3,)), 128 + rng.normal(0, 8, HW + (3,)),
@@ -305,9 +312,9 @@ def test_bad_input_is_refused_with_the_reason(scene):
         ShapeSearchDetector([])
 
 
-def test_api_runs_the_templates_detector_on_one_view_only(scene, tmp_path):
+def test_api_runs_the_templates_detector_on_one_view_only(scene, cache):
     img, truth, objects, _ = scene
-    models = infer.load(detector="templates", refiner="contour", cache_dir=tmp_path)
+    models = infer.load(detector="templates", refiner="contour", cache_dir=cache)
     assert models.detector is None and models.shape_search is not None
     models.shape_search = SMALL
     found = infer.run_scene([img], [K], objects, models, refine=False, with_masks=False,
@@ -324,7 +331,8 @@ def test_api_runs_the_templates_detector_on_one_view_only(scene, tmp_path):
         infer.load("runs/x", detector="templates")
 
 
-def test_images_command_with_the_templates_detector(scene, tmp_path, capsys, monkeypatch):
+def test_images_command_with_the_templates_detector(scene, cache, tmp_path, capsys,
+                                                   monkeypatch):
     """``python -m infer images --detector templates``: no network, both parts in
     instances.json; with a detector run as well, a message saying to drop one."""
     import infer.api
@@ -340,7 +348,7 @@ def test_images_command_with_the_templates_detector(scene, tmp_path, capsys, mon
         args += ["--mesh", f"{o.obj_id}={path}"]
     cv2.imwrite(str(tmp_path / "scene.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
     args += ["--image", str(tmp_path / "scene.png"), "--K", "400,400,159.5,119.5",
-             "--depth-range", "330", "500", "--cache-dir", str(tmp_path / "cache")]
+             "--depth-range", "330", "500", "--cache-dir", str(cache)]
     main(["images", "--detector", "templates", "--max-detections", "10",
           "--out", str(tmp_path / "out"), *args])
     rows = json.loads((tmp_path / "out" / "instances.json").read_text())["instances"]
@@ -482,7 +490,7 @@ def test_part_weights_are_recovered_per_part():
                                1 / (1 + np.exp([3.0, -2.75])), rtol=1e-9)
 
 
-def test_a_cells_score_calibration_scores_its_parts(scene, tmp_path):
+def test_a_cells_score_calibration_scores_its_parts(scene, cache, tmp_path):
     """A calibration file whose part 1 scores every candidate logit(0.77) (zero weights, that
     bias): every detection of part 1 scores 0.77, part 2 keeps the shared weights; the file
     goes through ``infer.load(templates_score=)``; a file of other features, a wrong length,
@@ -493,7 +501,7 @@ def test_a_cells_score_calibration_scores_its_parts(scene, tmp_path):
     path = tmp_path / "cell_score.json"
     path.write_text(json.dumps({"features": [*S.FEATURES, "bias"],
                                 "parts": {"1": constant, "7": constant}}))
-    models = infer.load(detector="templates", refiner=None, cache_dir=None,
+    models = infer.load(detector="templates", refiner=None, cache_dir=cache,
                         templates_score=path)
     assert models.templates_score == {1: tuple(constant), 7: tuple(constant)}
     models.shape_search = SMALL
