@@ -85,7 +85,12 @@ def load_score_weights(path: str | os.PathLike) -> dict[int, tuple[float, ...]]:
                          f"version scores {[*FEATURES, 'bias']}: {refit}")
     out = {}
     for k, w in data["parts"].items():
-        w = np.asarray(w, np.float64)
+        if not str(k).isdigit():
+            raise ValueError(f"{path}: part id {k!r} is not an obj_id (an integer): {refit}")
+        try:
+            w = np.asarray(w, np.float64)
+        except (TypeError, ValueError):
+            w = np.zeros(0)
         if w.shape != (len(FEATURES) + 1,) or not np.isfinite(w).all():
             raise ValueError(f"{path}: the weights of part {k} must be {len(FEATURES) + 1} "
                              f"finite numbers, got {data['parts'][k]}: {refit}")

@@ -520,9 +520,11 @@ def test_a_cells_score_calibration_scores_its_parts(scene, cache, tmp_path):
     bad.write_text(json.dumps({"features": ["contour", "bias"], "parts": {"1": [0.0, 1.0]}}))
     with pytest.raises(ValueError, match="fitted on the features"):
         infer.load(detector="templates", cache_dir=None, templates_score=bad)
-    bad.write_text(json.dumps({"features": [*S.FEATURES, "bias"], "parts": {"1": [0.0]}}))
-    with pytest.raises(ValueError, match="part 1 must be"):
-        infer.load(detector="templates", cache_dir=None, templates_score=bad)
+    for parts, match in (({"1": [0.0]}, "part 1 must be"), ({"1": ["a"] * (F + 1)}, "part 1"),
+                         ({"gear": constant}, "not an obj_id")):
+        bad.write_text(json.dumps({"features": [*S.FEATURES, "bias"], "parts": parts}))
+        with pytest.raises(ValueError, match=match):
+            infer.load(detector="templates", cache_dir=None, templates_score=bad)
     with pytest.raises(FileNotFoundError, match="train.templates_score --cell"):
         infer.load(detector="templates", cache_dir=None, templates_score=tmp_path / "no.json")
     with pytest.raises(ValueError, match="calibrates the templates detector"):
