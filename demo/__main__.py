@@ -87,16 +87,14 @@ def calibrated(adapted_dir: pathlib.Path, out: pathlib.Path, cache: pathlib.Path
     no network), detections refined by the contour refiner; ``cache``: the no-training
     setting's (its contour models and compiled programs)."""
     from infer.shipped import CONTOUR
+    from threept_jax.data.files import atomic_write_json
     from train import adapt, templates_score
 
     path = out / "templates_score.json"
-    if not path.exists():
+    if not path.exists():  # a killed run leaves no half-written calibration
         weights = templates_score.calibrate_cell(adapted_dir / "data" / "train", None,
                                                  cache / "contours")
-        out.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(weights, indent=1))
-        tmp.replace(path)  # a killed run leaves no half-written calibration
+        atomic_write_json(path, weights, indent=1)
     return adapt.test(None, adapted_dir / "data", out, cache, overlays=6,
                       instances=adapt.INSTANCES, refiner=CONTOUR, templates_score=path)
 

@@ -41,7 +41,6 @@ on 32 more held-out images; the first 30 images (the default ``--images``, 50 s)
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 import sys
 from collections.abc import Sequence
@@ -172,6 +171,7 @@ def calibrate_cell(data: pathlib.Path, split_name: str | None, cache: pathlib.Pa
 
 def main(argv: Sequence[str] | None = None) -> dict:
     from infer.api import DEFAULT_CACHE
+    from threept_jax.data.files import atomic_write_json
     from threept_jax.pipeline.shape_search import FEATURES, fit_score_weights
 
     p = argparse.ArgumentParser(prog="python -m train.templates_score",
@@ -193,8 +193,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
             p.error("--images must be at least 1")
         result = calibrate_cell(args.cell, args.split, args.cache_dir / "contours", args.images)
         if args.out:
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(json.dumps(result, indent=1))
+            atomic_write_json(args.out, result, indent=1)
             print(f"wrote {args.out}: pass it as --templates-score")
         return result
     feats, right = [], []
@@ -211,7 +210,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     print(f"{len(right)} candidates, {int(right.sum())} right; "
           f"SCORE_WEIGHTS = ({', '.join(f'{w:.4g}' for w in weights)})")
     if args.out:
-        args.out.write_text(json.dumps(result, indent=1))
+        atomic_write_json(args.out, result, indent=1)
     return result
 
 
