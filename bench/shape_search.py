@@ -52,7 +52,6 @@ from infer.refine import refine_objects  # noqa: E402
 from infer.shape_detect import ShapeSearchDetector, load_score_weights  # noqa: E402
 from threept_jax.data import bop  # noqa: E402
 from threept_jax.eval.bop_eval import evaluate_detection_results  # noqa: E402
-from threept_jax.geometry.boxes import box_iou  # noqa: E402
 from threept_jax.pipeline import shape_search as ss  # noqa: E402
 
 
@@ -111,8 +110,7 @@ def ceiling(detector, data, split_name, split, keys):
         total += len(gt_ids)
         if c is None:
             continue
-        iou = np.asarray(box_iou(c.xyxy, gt_box.reshape(-1, 4)))
-        hit = (iou >= 0.5) & (ids[c.obj][:, None] == gt_ids[None])  # [candidates, instances]
+        hit = ss.right_candidates(c.xyxy, ids[c.obj], gt_box, gt_ids)  # [candidates, instances]
         found += int(hit.any(0).sum())
         score = np.asarray(ss.calibrated_score(c.features, detector.score_weights[c.obj]))
         for name, rank in (("score", score), ("perfect", hit.any(1) + 0.5 * score)):

@@ -89,7 +89,7 @@ def collect(data: pathlib.Path, per_image: bool, cache: pathlib.Path, name: str,
     from infer.refine import refine_objects
     from infer.shape_detect import ShapeSearchDetector
     from threept_jax.data import bop
-    from threept_jax.geometry.boxes import box_iou
+    from threept_jax.pipeline.shape_search import right_candidates
 
     dataset = bop.BopDataset(data)
     split = dataset.split(split_name)
@@ -117,10 +117,8 @@ def collect(data: pathlib.Path, per_image: bool, cache: pathlib.Path, name: str,
         if c is None:
             continue
         ids = np.array([o.obj_id for o in det.objects])[c.obj]
-        iou = np.asarray(box_iou(c.xyxy, gt_box.reshape(-1, 4)))
-        iou = np.where(ids[:, None] == gt_ids[None], iou, 0.0)
         feats.append(c.features)
-        right.append(iou.max(1, initial=0.0) >= 0.5)
+        right.append(right_candidates(c.xyxy, ids, gt_box, gt_ids).any(1))
         parts.append(ids)
     if not feats:
         sys.exit(f"{data}: no image gave a candidate (no proposal or no part outline): check "

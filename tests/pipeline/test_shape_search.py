@@ -531,3 +531,14 @@ def test_a_cells_score_calibration_scores_its_parts(scene, cache, tmp_path):
         infer.load(detector="3pt", cache_dir=None, templates_score=path)
     with pytest.raises(ValueError, match="score weights of part 2"):
         ShapeSearchDetector(objects, score_weights={2: [1.0, 2.0]})
+
+
+def test_a_right_candidate_is_its_part_at_iou_one_half():
+    """Hand-derived: a 10 x 10 box against one shifted by 5 px (IoU 50 / 150 = 1/3) and by
+    2 px in x (IoU 80 / 120 = 2/3), of the same part or another; no instances, no rows."""
+    cand = np.array([[0, 0, 10, 10], [5, 0, 15, 10], [2, 0, 12, 10], [2, 0, 12, 10]], float)
+    right = S.right_candidates(cand, np.array([1, 1, 1, 2]), np.array([[0, 0, 10, 10]]),
+                               np.array([1]))
+    assert right[:, 0].tolist() == [True, False, True, False]
+    assert S.right_candidates(cand, np.ones(4, int), np.zeros((0, 4)),
+                              np.zeros(0, int)).shape == (4, 0)

@@ -46,6 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from threept_jax.geometry.boxes import box_iou
 from threept_jax.geometry.grids import viewpoint_rotation
 from threept_jax.pipeline.contour import ContourModel, ContourSettings, refine_poses
 
@@ -390,6 +391,16 @@ def fit_score_weights(features: np.ndarray, right: np.ndarray, l2: float = 1e-2)
 
     w = minimize(loss, np.zeros(Z.shape[1]), jac=True, method="L-BFGS-B").x
     return np.concatenate([w[:-1] / sd, [w[-1] - np.sum(w[:-1] * mu / sd)]])
+
+
+def right_candidates(xyxy: np.ndarray, parts: np.ndarray, gt_boxes: np.ndarray,
+                     gt_parts: np.ndarray, iou: float = 0.5) -> np.ndarray:
+    """[P, G] bool: candidate p (box ``xyxy`` [P, 4], part ``parts`` [P]) is a right detection
+    of ground-truth instance g (box ``gt_boxes`` [G, 4] xyxy, part ``gt_parts`` [G]): its part,
+    box IoU >= ``iou``. What :func:`calibrated_score` estimates, and what fits it."""
+    overlap = np.asarray(box_iou(np.asarray(xyxy, np.float64).reshape(-1, 4),
+                                 np.asarray(gt_boxes, np.float64).reshape(-1, 4)))
+    return (overlap >= iou) & (np.asarray(parts)[:, None] == np.asarray(gt_parts)[None])
 
 
 #: Fewest right (and wrong) candidates of a part for :func:`fit_part_weights` to fit its own
