@@ -32,16 +32,23 @@ FAST_COMPILE = ("tests/train/test_refiner_trainer.py", "tests/pipeline/test_refi
 #: compile. The rasterizer renders onboarding banks and contour models (1000 views a mesh):
 #: unoptimised, a contour model took 5.3 s a mesh against 2.0 s (warm, 2 cores).
 OPTIMISED = ("jit__render_impl",)
-_fast_compile = [False]
+#: Modules that compile every program fast but these, which they run hundreds of times: the
+#: learning tests' train steps (100 and 400 steps). Their evaluations, initialisations and
+#: eager operations run once or twice (test_refiner_learning's evaluation took 19 s to compile
+#: optimised).
+FAST_BUT = {"tests/train/test_refiner_learning.py": ("jit_train_step",),
+            "tests/train/test_learning.py": ("jit_train_step",)}
+#: The programs the running module compiles optimised; None: all of them (no FAST_COMPILE).
+_optimised: list[tuple[str, ...] | None] = [None]
 _create_compile_options = _pxla.create_compile_options
 
 
 def _compile_options(computation, *args):
     """``pxla.create_compile_options`` (jax 0.10) with FAST_COMPILE_OPTIONS under the options
-    a program asked for, in a FAST_COMPILE module, unless the program is OPTIMISED."""
+    a program asked for, unless the running module compiles that program optimised."""
     *args, compiler_options = args
     name = str(computation.operation.attributes["sym_name"]).strip('"')
-    if _fast_compile[0] and name not in OPTIMISED:
+    if _optimised[0] is not None and name not in _optimised[0]:
         compiler_options = {**FAST_COMPILE_OPTIONS, **compiler_options}
     return _create_compile_options(computation, *args, compiler_options)
 
@@ -93,16 +100,26 @@ def _module_path(item) -> str:
     return pathlib.Path(str(item.fspath)).resolve().relative_to(ROOT).as_posix()
 
 
-#: The optimisation level of the programs in this worker's caches: None (none yet), True (fast).
-_cached_level: list[bool | None] = [None]
+#: The compile rule of the programs in this worker's caches (``_module_rule``); [] none yet.
+_cached_rule: list = []
+
+
+def _module_rule(module: str) -> tuple[str, ...] | None:
+    """The programs ``module`` compiles optimised: None for all of them (the default level)."""
+    if module in FAST_COMPILE:
+        return OPTIMISED
+    if module in FAST_BUT:
+        return OPTIMISED + FAST_BUT[module]
+    return None
 
 
 @pytest.fixture(scope="module", autouse=True)
 def _optimisation_level(request):
-    """Programs compiled by the modules of FAST_COMPILE (their module fixtures included: an
-    autouse fixture comes first in its scope) skip LLVM's optimisations.
+    """Programs compiled by the modules of FAST_COMPILE and FAST_BUT (their module fixtures
+    included: an autouse fixture comes first in its scope) skip LLVM's optimisations, but
+    those the module's rule names (``_module_rule``).
 
-    A module whose level is not that of the programs the worker holds starts with JAX's
+    A module whose rule is not that of the programs the worker holds starts with JAX's
     in-memory caches and the shared training steps emptied, so no program compiled at one
     level runs at the other: the levels round floats differently (eager ``jnp`` ops too), and
     a later module comparing its results with a subprocess's got other bits
@@ -110,12 +127,13 @@ def _optimisation_level(request):
     row share their programs (the training steps of ``small_config`` in ``fixtures.training.STEPS``,
     the tiny detector's full-image functions).
     """
-    fast = _module_path(request.node) in FAST_COMPILE
-    if _cached_level[0] is not None and _cached_level[0] != fast:
+    rule = _module_rule(_module_path(request.node))
+    if _cached_rule and _cached_rule[0] != rule:
         _forget_compiled_programs()
-    _cached_level[0] = _fast_compile[0] = fast
+    _cached_rule[:] = [rule]
+    _optimised[0] = rule
     yield
-    _fast_compile[0] = False
+    _optimised[0] = None
 
 
 def _forget_compiled_programs():
