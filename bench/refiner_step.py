@@ -75,15 +75,15 @@ OBJ_IDS = (4, 5, 6, 7)
 K_IMAGE = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])
 
 
-def load_meshes(max_faces: int) -> dict[int, Mesh]:
-    """{obj_id: prepared mesh} of the benchmark's T-LESS models (as ``RefinerMeshes.from_records``
-    prepares them)."""
+def load_meshes(max_faces: int, models: pathlib.Path = MODELS) -> dict[int, Mesh]:
+    """{obj_id: prepared mesh} of the benchmark's T-LESS models in ``models`` (as
+    ``RefinerMeshes.from_records`` prepares them)."""
     out = {}
     for obj_id in OBJ_IDS:
-        path = MODELS / f"obj_{obj_id:06d}.ply"
+        path = models / f"obj_{obj_id:06d}.ply"
         if not path.is_file():
             raise FileNotFoundError(f"benchmark mesh {path} not found; the bench reads the "
-                                    f"T-LESS models obj {OBJ_IDS} from {MODELS}")
+                                    f"T-LESS models obj {OBJ_IDS} from {models} (--models)")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             out[obj_id] = prepare_mesh(load_mesh(path, models_info=None), max_faces=max_faces,
@@ -147,7 +147,8 @@ def timed(call, steps: int) -> tuple[float, float, object]:
     return cold, (time.perf_counter() - t0) / steps, first
 
 
-def bench_variant(variant: str, steps: int, batch_override: int | None) -> dict:
+def bench_variant(variant: str, steps: int, batch_override: int | None,
+                  models: pathlib.Path = MODELS) -> dict:
     config = refiner_configs.get_config(variant)
     mesh = sharding.make_mesh(-1, 1)
     batch = batch_override or int(config.batch_size)
@@ -155,7 +156,7 @@ def bench_variant(variant: str, steps: int, batch_override: int | None) -> dict:
     model_cfg = model_config(config)
     ex_cfg = refiner_example_config(config)
     settings = refine_settings(config)
-    prepared = load_meshes(int(config.refine.max_faces))
+    prepared = load_meshes(int(config.refine.max_faces), models)
     meshes = RefinerMeshes.from_meshes(prepared)
     assets = RefinerAssets.from_meshes(meshes)
     host = synthetic_batch(np.random.default_rng(0), [prepared[k] for k in meshes.obj_ids],
@@ -214,6 +215,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=5, help="warm steps to average")
     parser.add_argument("--batch", type=int, default=None,
                         help="override the batch size (default: the config's batch_size)")
+    parser.add_argument("--models", type=pathlib.Path, default=MODELS,
+                        help="folder of the T-LESS models obj 4-7 (default: ../shared's)")
     args = parser.parse_args()
     if args.steps < 1:
         parser.error(f"--steps must be >= 1, got {args.steps}")
@@ -223,7 +226,7 @@ def main() -> None:
     variants = args.variants or (["tiny", "cpu", "small"] if accel else ["tiny", "cpu"])
     for v in variants:
         try:
-            r = bench_variant(v, args.steps, args.batch)
+            r = bench_variant(v, args.steps, args.batch, args.models)
         except (FileNotFoundError, RuntimeError) as e:
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)

@@ -1,0 +1,104 @@
+"""``scripts/device_run.sh`` and ``scripts/device.py`` (issue 40), the lent GPU's one command,
+dry-run on CPU. Covered: the carry, the wheels installed only for modules the device lacks,
+every stage at the tiny size, what comes back, and a second draw that resumes the first
+draw's run."""
+
+import importlib.util
+import json
+import pathlib
+import subprocess
+import sys
+
+import pytest
+from fixtures.refiner_records import write_refiner_records
+from fixtures.training import ROOT, SUBPROCESS_ENV
+
+from infer.checkpoint import load_refiner
+
+
+def _device():
+    spec = importlib.util.spec_from_file_location("device", ROOT / "scripts" / "device.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_only_the_wheels_of_missing_modules_are_installed(tmp_path, monkeypatch):
+    device = _device()
+    monkeypatch.setattr(device, "NEEDED", {"numpy": "numpy", "no-such-dist": "no_such_module_x"})
+    wheels = tmp_path / "wheels"
+    wheels.mkdir()
+    (wheels / "numpy-2.0.0-cp312-cp312-manylinux2014_x86_64.whl").write_bytes(b"")
+    with pytest.raises(SystemExit, match=r"lacks \['no-such-dist'\].*device.py prepare"):
+        device.missing(wheels)
+    wheel = wheels / "no_such_dist-1.0-py3-none-any.whl"
+    wheel.write_bytes(b"")
+    assert device.missing(wheels) == [wheel]  # numpy is importable here: not installed
+
+
+def test_bad_input_names_the_fix(tmp_path, monkeypatch):
+    device = _device()
+    with pytest.raises(SystemExit, match="not a records folder"):
+        device.prepare(tmp_path, tmp_path / "carry", 4, 2, wheels=False)
+    with pytest.raises(SystemExit, match="no run.tar.gz.NN"):
+        device.unpack(tmp_path, tmp_path / "run")
+    with pytest.raises(SystemExit, match="holds no records.*device.py prepare"):
+        device.run(1.0, tmp_path / "nothing", tmp_path / "out", dry_run=True)
+    records = write_refiner_records(tmp_path / "rec", num_objects=2, mesh_seed=0, num_images=4,
+                                    splits=("train", "val"), max_faces=600)
+    monkeypatch.setattr(device, "CALL_LIMIT", 1000)
+    with pytest.raises(SystemExit, match="over the 0 MiB a call carries: pass fewer --images"):
+        device.prepare(records, tmp_path / "carry", 4, 2, wheels=False)
+    monkeypatch.setattr(device, "RUN_LIMIT", 1000)  # a refiner whose state cannot come back
+    with pytest.raises(SystemExit, match="MiB training state, over the 0 MiB a call brings"):
+        device.prepare(records, tmp_path / "carry", 4, 2, wheels=False)
+
+
+def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypatch):
+    records = write_refiner_records(tmp_path / "rec", num_objects=2, mesh_seed=0, num_images=6,
+                                    splits=("train", "val"), max_faces=600)
+    carry = tmp_path / "carry"
+    env = {**SUBPROCESS_ENV, "PYTHON": sys.executable, "DEVICE_CARRY": str(carry)}
+
+    def device(*argv):
+        proc = subprocess.run([sys.executable, "scripts/device.py", *argv], cwd=ROOT, env=env,
+                              capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+
+    run = tmp_path / "models" / "refiner-gpu-run"
+
+    def draw(out, *flags):
+        proc = subprocess.run(["bash", "scripts/device_run.sh", "10", "--dry-run", "--resume",
+                               str(run), *flags],
+                              cwd=ROOT, env={**env, "OUT": str(out)}, capture_output=True,
+                              text=True, timeout=600)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        return json.loads((out / "summary.json").read_text())
+
+    device("prepare", "--records", str(records), "--out", str(carry), "--images", "4",
+           "--val-images", "2", "--no-wheels")
+    first = draw(tmp_path / "out1")
+    assert first["mfu_status"] == [0, 0] and first["train_status"] == 0
+    assert (first["steps_before"], first["steps_after"]) == (0, 2)
+    env_json = json.loads((tmp_path / "out1" / "env.json").read_text())
+    assert env_json["backend"] == "cpu" and env_json["packages"]["jax"]
+    mfu = (tmp_path / "out1" / "mfu.txt").read_text()
+    assert mfu.count("x the matmul reference") == 2  # 3PT-D's step and 3PT-R's, both timed
+    device("unpack", "--files", str(tmp_path / "out1"), "--to", str(run))
+    assert load_refiner(run)[2] == 2
+
+    # The next draw finds the run where unpack put it: the launcher (whose resume test_resume
+    # covers) is started in a workdir holding it, to go on from its last step.
+    module, seen = _device(), []
+
+    def stage(command, log, seconds, env):
+        workdir = pathlib.Path(next(a for a in command if a.startswith("--workdir="))[10:])
+        seen.append((command, load_refiner(workdir)[2]))
+        return 0
+
+    monkeypatch.setattr(module, "_stage", stage)
+    second = module.run(10.0, carry, tmp_path / "out2", dry_run=True, mfu=False, resume=run)
+    (command, step), = seen  # the training stage only
+    assert command[1] == "train/launch.py" and step == 2
+    assert "--config.total_steps=4" in command and second["steps_before"] == 2
+    assert "mfu_status" not in second and (tmp_path / "out2" / "run.tar.gz.00").exists()
