@@ -112,15 +112,21 @@ def prepare(records: pathlib.Path, out: pathlib.Path, images: int, val_images: i
         raise SystemExit(f"the device's refiner ({CONFIG}, {' '.join(CONFIG_OVERRIDES)}) has a "
                          f"{state / 2**20:.0f} MiB training state, over the {RUN_LIMIT >> 20} "
                          "MiB a call brings back: choose a smaller size in scripts/device.py")
+    meshes = [ROOT.parent / "shared" / "meshes" / "bop" / "tless" / "models" /
+              f"obj_{obj_id:06d}.ply" for obj_id in BENCH_MESHES]
+    if not all(m.is_file() for m in meshes):
+        raise SystemExit(f"the refiner's benchmark meshes {[str(m) for m in meshes]} are "
+                         "missing: prepare runs beside ../shared")
     if out.exists():
+        if any(out.iterdir()) and not (out / "records" / "objects.json").exists():
+            raise SystemExit(f"{out} exists and is not a carry of this command: pass a new "
+                             "--out (it is emptied first)")
         shutil.rmtree(out)
     subset(records, out / "records", images, val_images, quality=80)
     # The refiner's MFU benchmark renders T-LESS obj 4-7 (../shared does not travel).
     (out / "meshes").mkdir()
-    for obj_id in BENCH_MESHES:
-        name = f"obj_{obj_id:06d}.ply"
-        shutil.copy2(ROOT.parent / "shared" / "meshes" / "bop" / "tless" / "models" / name,
-                     out / "meshes" / name)
+    for m in meshes:
+        shutil.copy2(m, out / "meshes" / m.name)
     if wheels:
         platforms = [a for p in ("manylinux_2_28", "manylinux_2_27", "manylinux_2_17",
                                  "manylinux2014", "manylinux1") for a in ("--platform",
@@ -267,7 +273,10 @@ def run(minutes: float, carry: pathlib.Path, out: pathlib.Path, dry_run: bool,
     command = [sys.executable, "train/launch.py",
                f"--config=train/configs/refiner.py:{config}", f"--workdir={workdir}",
                f"--config.data_dir={records.resolve()}", f"--config.total_steps={total}",
-               "--config.progress_bar=False", "--config.checkpoint.async_save=False"]
+               "--config.progress_bar=False", "--config.checkpoint.async_save=False",
+               # The carry's absolute path may differ between draws; its records must not
+               # (the saved data iterator indexes them): a new records subset is a new run.
+               "--allow_config_change"]
     if dry_run:
         command += DRY_OVERRIDES
     else:

@@ -40,12 +40,17 @@ def test_bad_input_names_the_fix(tmp_path, monkeypatch):
     device = _device()
     with pytest.raises(SystemExit, match="not a records folder"):
         device.prepare(tmp_path, tmp_path / "carry", 4, 2, wheels=False)
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("a user's file")
     with pytest.raises(SystemExit, match="no run.tar.gz.NN"):
         device.unpack(tmp_path, tmp_path / "run")
     with pytest.raises(SystemExit, match="holds no records.*device.py prepare"):
         device.run(1.0, tmp_path / "nothing", tmp_path / "out", dry_run=True)
     records = write_refiner_records(tmp_path / "rec", num_objects=2, mesh_seed=0, num_images=4,
                                     splits=("train", "val"), max_faces=600)
+    with pytest.raises(SystemExit, match="is not a carry of this command"):
+        device.prepare(records, tmp_path / "mine", 4, 2, wheels=False)
+    assert (tmp_path / "mine" / "notes.txt").exists()  # nothing of the user's is deleted
     monkeypatch.setattr(device, "CALL_LIMIT", 1000)
     with pytest.raises(SystemExit, match="over the 0 MiB a call carries: pass fewer --images"):
         device.prepare(records, tmp_path / "carry", 4, 2, wheels=False)
@@ -101,4 +106,5 @@ def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypat
     (command, step), = seen  # the training stage only
     assert command[1] == "train/launch.py" and step == 2
     assert "--config.total_steps=4" in command and second["steps_before"] == 2
+    assert "--allow_config_change" in command  # the carry's path may differ between draws
     assert "mfu_status" not in second and (tmp_path / "out2" / "run.tar.gz.00").exists()
