@@ -45,9 +45,11 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 # The project's packages and scripts/ (gpu_detector's subset), also when imported by the tests.
 sys.path[:0] = [str(ROOT), str(ROOT / "scripts")]
 #: What the training needs beyond the device's own stack: distribution -> its import name.
+#: (The imports of the trainers and the benchmarks, against the device's package list: grain,
+#: array-record, ml-collections, portpicker and pycocotools are not on it.)
 NEEDED = {"grain": "grain", "array-record": "array_record", "ml-collections": "ml_collections",
           "trimesh": "trimesh", "cloudpickle": "cloudpickle", "portpicker": "portpicker",
-          "PyYAML": "yaml"}
+          "PyYAML": "yaml", "pycocotools": "pycocotools"}
 #: The device's Python (the wheels are downloaded for it).
 DEVICE_PYTHON = "3.12"
 #: What one call may carry: the working tree and the carry together (the run tool's limit).
