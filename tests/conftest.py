@@ -27,7 +27,8 @@ FAST_COMPILE = ("tests/train/test_refiner_trainer.py", "tests/pipeline/test_refi
                 "tests/train/test_detector_trainer.py", "tests/train/test_adapt.py",
                 "tests/infer/test_track_cli.py", "tests/infer/test_bop_runner.py",
                 "tests/infer/test_refine_api.py", "tests/infer/test_detect.py",
-                "tests/train/test_cluster.py", "tests/train/test_resume.py")
+                "tests/train/test_cluster.py", "tests/train/test_resume.py",
+                "tests/scripts/test_device.py")
 #: Programs that FAST_COMPILE modules still compile optimised: they run far more than they
 #: compile. The rasterizer renders onboarding banks and contour models (1000 views a mesh):
 #: unoptimised, a contour model took 5.3 s a mesh against 2.0 s (warm, 2 cores).
@@ -87,11 +88,10 @@ SLOW_FIRST = (  # by their measured test time, longest first (docs/testing.md), 
     "tests/train/test_refiner_trainer.py", "tests/train/test_detector_trainer.py",
     "tests/train/test_cluster.py", "tests/infer/test_track_cli.py",
     "tests/infer/test_refine_api.py", "tests/infer/test_bop_runner.py",
-    "tests/train/test_resume.py",
+    "tests/train/test_resume.py", "tests/scripts/test_device.py",
     "tests/pipeline/test_refine_ladder.py", "tests/train/test_refiner_learning.py",
     "tests/train/test_learning.py", "tests/train/test_campaign.py",
-    "tests/infer/test_shipped_guard.py", "tests/scripts/test_device.py",
-    "tests/pipeline/test_refinement.py",
+    "tests/infer/test_shipped_guard.py", "tests/pipeline/test_refinement.py",
     "tests/pipeline/test_contour.py", "tests/pipeline/test_shape_search.py",
     "tests/datagen/test_mesh_kinds.py",
 )

@@ -9,11 +9,15 @@ import pathlib
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from fixtures.refiner_records import write_refiner_records
 from fixtures.training import ROOT, SUBPROCESS_ENV
 
+import infer
 from infer.checkpoint import load_refiner
+from threept_jax.data.run_dir import RunDir
+from train import eval_refiner
 
 
 def _device():
@@ -59,7 +63,7 @@ def test_bad_input_names_the_fix(tmp_path, monkeypatch):
         device.prepare(records, tmp_path / "carry", 4, 2, wheels=False)
 
 
-def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypatch):
+def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypatch, capsys):
     records = write_refiner_records(tmp_path / "rec", num_objects=2, mesh_seed=0, num_images=6,
                                     splits=("train", "val"), max_faces=600)
     carry = tmp_path / "carry"
@@ -90,7 +94,24 @@ def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypat
     mfu = (tmp_path / "out1" / "mfu.txt").read_text()
     assert mfu.count("x the matmul reference") == 2  # 3PT-D's step and 3PT-R's, both timed
     device("unpack", "--files", str(tmp_path / "out1"), "--to", str(run))
-    assert load_refiner(run)[2] == 2
+    # What came back is an ordinary 3PT-R run that the launcher wrote: inference loads it
+    # with the step options it was trained with, and the evaluation command reads it.
+    assert RunDir(run, model="refiner").checkpoint_steps() == [2]  # the last one only
+    assert json.loads((run / "refiner.json").read_text())["variant"] == "tiny/16"
+    model, cfg, step, settings = load_refiner(run)
+    assert step == 2 and cfg.variant == "tiny/16"
+    assert settings.num_matches == 16 and settings.max_faces == 256
+    out = model(np.zeros((1, 1, 64, 64, 3), np.uint8), np.zeros((1, 2, 1, 64, 64, 3), np.uint8))
+    assert out["scores"].shape == (1, 2)
+    models = infer.load(refiner=run)
+    assert models.detector is None and models.refiner_step == 2
+    assert models.refine_settings == settings
+    assert eval_refiner.main(["--workdir", str(run), "--num-examples", "2"]) == 0
+    evaluated = json.loads(capsys.readouterr().out)
+    assert evaluated["step"] == 2 and evaluated["eval/num_instances"] >= 1
+    with pytest.raises(SystemExit) as e:
+        eval_refiner.main(["--workdir", str(tmp_path)])
+    assert e.value.code == 2
 
     # The next draw finds the run where unpack put it: the launcher (whose resume test_resume
     # covers) is started in a workdir holding it, to go on from its last step.
