@@ -1,7 +1,9 @@
 """``scripts/device_run.sh`` and ``scripts/device.py`` (issue 40), the lent GPU's one command,
 dry-run on CPU. Covered: the carry, the wheels installed only for modules the device lacks,
 every stage at the tiny size, what comes back, and a second draw that resumes the first
-draw's run."""
+draw's run. Its dry run trains through ``train/launch.py``, so it also checks what the
+launcher writes for the refiner: loaded by inference with its step options, evaluated by
+``train.eval_refiner``."""
 
 import importlib.util
 import json
@@ -119,13 +121,13 @@ def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypat
 
     def stage(command, log, seconds, env):
         workdir = pathlib.Path(next(a for a in command if a.startswith("--workdir="))[10:])
-        seen.append((command, load_refiner(workdir)[2]))
+        seen.append((command, RunDir(workdir, model="refiner").checkpoint_steps()))
         return 0
 
     monkeypatch.setattr(module, "_stage", stage)
     second = module.run(10.0, carry, tmp_path / "out2", dry_run=True, mfu=False, resume=run)
-    (command, step), = seen  # the training stage only
-    assert command[1] == "train/launch.py" and step == 2
+    (command, steps), = seen  # the training stage only
+    assert command[1] == "train/launch.py" and steps == [2]
     assert "--config.total_steps=4" in command and second["steps_before"] == 2
     assert "--allow_config_change" in command  # the carry's path may differ between draws
     assert "mfu_status" not in second and (tmp_path / "out2" / "run.tar.gz.00").exists()
