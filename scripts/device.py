@@ -285,7 +285,7 @@ def run(minutes: float, carry: pathlib.Path, out: pathlib.Path, dry_run: bool,
         command += [*CONFIG_OVERRIDES, "--config.checkpoint.every_steps=250",
                     "--config.eval.every_steps=1000",
                     f"--config.data.num_workers={max(1, min(12, (os.cpu_count() or 2) - 2))}"]
-    pack_seconds = 60
+    pack_seconds = 90  # up to 60 s for the SIGTERM save, then the packing
     summary["train_status"] = _stage(command, out / "train.log",
                                      deadline - pack_seconds - time.monotonic(), env)
     summary["steps_after"] = (_checkpoint_steps(workdir) or [0])[-1]
