@@ -238,15 +238,15 @@ def run(minutes: float, carry: pathlib.Path, out: pathlib.Path, dry_run: bool,
     before: every minute trains); training goes on from the run in ``resume`` if any."""
     start = time.monotonic()
     deadline = start + minutes * 60
+    records = carry / "records"
+    if not (records / "objects.json").exists():
+        raise SystemExit(f"{records} holds no records: run python scripts/device.py prepare "
+                         "and carry its folder")
     out.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         p for p in (os.environ.get("PYTHONPATH"), str(ROOT)) if p), "PYTHONUNBUFFERED": "1"}
     summary: dict = {"dry_run": dry_run, "minutes": {}}
     (out / "env.json").write_text(json.dumps(_environment(), indent=1))
-    records = carry / "records"
-    if not (records / "objects.json").exists():
-        raise SystemExit(f"{records} holds no records: run python scripts/device.py prepare "
-                         "and carry its folder")
 
     # (a) The MFU table, once per device kind: at most MFU_SHARE of the call, half each.
     if mfu:

@@ -52,6 +52,7 @@ def test_bad_input_names_the_fix(tmp_path, monkeypatch):
         device.unpack(tmp_path, tmp_path / "run")
     with pytest.raises(SystemExit, match="holds no records.*device.py prepare"):
         device.run(1.0, tmp_path / "nothing", tmp_path / "out", dry_run=True)
+    assert not (tmp_path / "out").exists()  # refused before any work or output
     records = write_refiner_records(tmp_path / "rec", num_objects=2, mesh_seed=0, num_images=4,
                                     splits=("train", "val"), max_faces=600)
     with pytest.raises(SystemExit, match="is not a carry of this command"):
