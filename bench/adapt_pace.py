@@ -15,6 +15,12 @@ ratio of the first arm's (the reference run, in this process).
         [--yolo-python /path/to/venv/bin/python] [--out runs/bench/adapt_pace]
 
 The arms (:data:`ARMS`) are config overrides; ``--set KEY=VALUE`` adds to every arm.
+``--dense ARM ... --seeds S ...`` also trains the dense cell detector (``train.cell_detector``,
+:data:`DENSE_ARMS`) for the same minutes at each seed, with its held-out curve on ``--val``
+(four points), scored by the same evaluator on the same test images:
+
+    python bench/adapt_pace.py --arms conv --dense dense --seeds 0 1 \
+        --val runs/demo/adapted/data/val --minutes 10
 """
 
 from __future__ import annotations
@@ -86,6 +92,39 @@ def train_arm(name: str, overrides: dict, records: pathlib.Path, test: pathlib.P
             "test_ap50_any_part": any_part_ap50(test, *(out / f"{name}_test").glob("*.json"))}
 
 
+#: The dense cell detector's arms: keyword arguments of ``train.cell_detector.train``, built
+#: when called (the augmentation settings are dataclasses of the package).
+DENSE_ARMS = {
+    "dense": lambda: {},  # train.cell_detector as it is
+    # Scales drawn from 0.5-1.5 (YOLO's) instead of 0.75-1.33: the recipe's first measurement.
+    "dense_wide": lambda: {"augment": _augment(scale=(0.5, 1.5))},
+}
+
+
+def _augment(**kw):
+    from threept_jax.data.dense_input import DenseAugment
+
+    return DenseAugment(**kw)
+
+
+def dense_arm(name: str, records: pathlib.Path, test: pathlib.Path, minutes: float,
+              out: pathlib.Path, val: pathlib.Path | None, seed: int) -> dict:
+    """The dense cell detector (``python -m train.cell_detector``: every part at every place of
+    full images, mosaics, task-aligned assignment) trained for ``minutes``, scored by the same
+    evaluator on the same test images (the network's boxes alone, as the other arms')."""
+    from train import cell_detector
+
+    work = out / f"{name}_seed{seed}"
+    info = cell_detector.train(records, work, minutes=minutes, seed=seed, test=test, val=val,
+                               **DENSE_ARMS[name]())
+    return {"arm": f"{name} (seed {seed})", "steps": info["steps"],
+            "train_minutes": info["train_minutes"],
+            "curve": [{"step": c["step"], "minute": c["minutes"],
+                       "val_ap50": c.get("val", {}).get("ap50")} for c in info["curve"]],
+            "test_ap50": info["test"]["ap50"], "test_ap": info["test"]["ap"],
+            "test_ap50_any_part": info["test"]["ap50_any_part"]}
+
+
 def any_part_ap50(test: pathlib.Path, results: pathlib.Path) -> float:
     """The diagnostic box AP50 of a 2D results file with any part's box counted right (found,
     maybe misnamed)."""
@@ -118,7 +157,13 @@ def main(argv=None) -> None:
     p.add_argument("--test", type=pathlib.Path, default=ROOT / "runs/demo/adapted/data/test",
                    help="BOP dataset whose val_pbr images are the test images")
     p.add_argument("--minutes", type=float, default=10.0)
-    p.add_argument("--arms", nargs="+", default=list(ARMS), choices=list(ARMS))
+    p.add_argument("--arms", nargs="*", default=list(ARMS), choices=list(ARMS))
+    p.add_argument("--dense", nargs="*", default=[], choices=list(DENSE_ARMS),
+                   help="also train these arms of the dense cell detector (train.cell_detector)")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0],
+                   help="the dense arms' seeds")
+    p.add_argument("--val", type=pathlib.Path, default=None,
+                   help="BOP dataset of held-out images for the dense arms' curves")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                    help="config overrides for every arm")
     p.add_argument("--yolo-python", default=None,
@@ -135,6 +180,11 @@ def main(argv=None) -> None:
         rows.append(train_arm(name, {**ARMS[name], **extra}, args.records, args.test,
                               args.minutes, args.out))
         (args.out / "results.json").write_text(json.dumps(rows, indent=1))
+    for name in args.dense:
+        for seed in args.seeds:
+            rows.append(dense_arm(name, args.records, args.test, args.minutes, args.out, args.val,
+                                  seed))
+        (args.out / "results.json").write_text(json.dumps(rows, indent=1))
     if args.yolo_python:
         rows.append(yolo_arm(args.yolo_python, args.records, args.test, args.minutes, args.out))
         (args.out / "results.json").write_text(json.dumps(rows, indent=1))
@@ -144,7 +194,8 @@ def main(argv=None) -> None:
           "diagnostic: AP50 with any part |")
     print("|---|---|---|---|---|---|---|")
     for r in rows:
-        curve = " / ".join(f"{c['val_ap50']:.3f}" for c in r.get("curve", []))
+        curve = " / ".join(f"{c['val_ap50']:.3f}" for c in r.get("curve", [])
+                           if c["val_ap50"] is not None)
         ratio = r["test_ap50"] / ref if ref > 0 else float("nan")
         print(f"| {r['arm']} | {r.get('steps', '')} | {r['train_minutes']:.1f} | {curve} | "
               f"{r['test_ap50']:.3f} / {r['test_ap']:.3f} | {ratio:.2f} | "

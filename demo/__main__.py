@@ -5,16 +5,16 @@ downloaded and nothing from outside the repository:
 
 1. **Adapted** (``python -m train.adapt``, a user's own parts): five procedural parts of a fixed
    seed stand for the parts of a robot cell (one camera above a tray at a working distance,
-   ``datagen/cell.py``; its depth range sets the pan-and-scan scales). Piles of them in the
-   cell are path-traced (Mitsuba, 640x480, 2 samples per pixel denoised) and packed
-   with render banks, a ``--config`` detector is trained from scratch for ``--minutes``
-   (``--from shipped`` fine-tunes the shipped detector, ``models/``, instead),
-   then a refiner (3PT-R, ``train/configs/refiner.py:tiny``) for ``--refiner-minutes`` on the
-   same records. The best detector checkpoint (full-image AP50 on val scenes) detects every
-   part in new test scenes, object generation gives each detection a pose and the refiner
-   refines it (the trained 3PT-R when its held-out check passes, else the training-free contour
-   refiner): box AP50, and BOP 6D AP, AP-mm and segmentation AP before refinement (object
-   generation alone) and after it.
+   ``datagen/cell.py``; its depth range bounds the poses). Piles of them in the cell are
+   path-traced (Mitsuba, 640x480, 2 samples per pixel denoised) and packed, the dense cell
+   detector (``train.cell_detector``: the five parts at every place of full images) is trained
+   from scratch for ``--minutes`` (5; ``--detector 3pt``: 3PT-D, a ``--config`` detector from
+   scratch or ``--from shipped``), and with ``--refiner-minutes`` (default 0: none) a refiner
+   (3PT-R, ``train/configs/refiner.py:tiny``) on the same records. The detector finds every part in new test
+   scenes, each box is posed by its part's templates fitted inside it (3PT-D: object
+   generation) and the refiner refines it (the trained 3PT-R when its held-out check passes,
+   else the training-free contour refiner): box AP50, and BOP 6D AP, AP-mm and segmentation AP
+   before refinement and after it.
 2. **No training** (``--detector templates``): the same cell, the same test images, its parts
    found from their CAD models alone (``infer/shape_detect.py``: selective-search proposals,
    contour templates fitted to each, the best poses verified by the contour refiner), then
@@ -29,10 +29,11 @@ downloaded and nothing from outside the repository:
    the figures), and refined by the shipped refiner when one ships, else by the contour
    refiner.
 
-A refiner trained for a few CPU minutes may not improve the poses yet: its held-out figures
-(rotation error and MSSD recall before and after its steps) are printed, and a refiner that
-does not make held-out poses better is not used (``train.adapt.refiner_helps``;
-``--refiner-minutes 0`` trains none): the contour refiner refines instead. The "before" and
+A refiner trained for a few CPU minutes has not improved the poses yet (the 1.5 minutes the
+demo gave it until 2026-11-29 never did), so none is trained by default; with
+``--refiner-minutes`` its held-out figures (rotation error and MSSD recall before and after its
+steps) are printed, and a refiner that does not make held-out poses better is not used
+(``train.adapt.refiner_helps``): the contour refiner refines instead. The "before" and
 "after" figures say which way refinement went. Every stage resumes: run the same command again and finished stages are
 skipped (a killed data generation redoes only its unfinished scene, a killed training restarts
 from its last checkpoint). Outputs go to ``--out`` (default ``runs/demo``): ``report.json``,
@@ -116,16 +117,24 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p = argparse.ArgumentParser(prog="python -m demo", description=__doc__.split("\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/demo"))
-    p.add_argument("--minutes", type=float, default=3.5, help="training budget")
+    p.add_argument("--minutes", type=float, default=5.0,
+                   help="the detector's training budget: 5 keeps the demo within 15 minutes; "
+                        "the cell detector needs about 10 on 2 cores to be useful (test box "
+                        "AP50 0.52-0.68 at 10, 0.16-0.22 at 3.5-5; docs/training.md)")
+    p.add_argument("--detector", default="cell", choices=("cell", "3pt"),
+                   help="the adapted setting's detector (train.adapt --detector): the dense "
+                        "cell detector, or 3PT-D")
     p.add_argument("--from", dest="init_from", default="scratch", metavar="RUN|shipped|scratch",
-                   help="the adapted setting's detector (train.adapt --from): scratch trains a "
-                        "--config detector in --minutes; shipped fine-tunes the shipped one "
-                        "(its larger network takes fewer steps in the same minutes)")
+                   help="with --detector 3pt (train.adapt --from): scratch trains a --config "
+                        "detector in --minutes; shipped fine-tunes the shipped one (its larger "
+                        "network takes fewer steps in the same minutes)")
     p.add_argument("--config", default="tiny", choices=CONFIGS,
-                   help="detector config with --from scratch (tiny: the most steps in a few "
-                        "minutes)")
-    p.add_argument("--refiner-minutes", type=float, default=1.5,
-                   help="refiner training budget (0: no refiner, object generation alone)")
+                   help="with --detector 3pt and --from scratch: the 3PT-D config (tiny: the "
+                        "most steps in a few minutes)")
+    p.add_argument("--refiner-minutes", type=float, default=0.0,
+                   help="3PT-R training budget (0: none, the default: a 3PT-R of a few CPU "
+                        "minutes has never passed its held-out check; the contour refiner "
+                        "refines)")
     p.add_argument("--train-scenes", type=int, default=60, help="one image each (a cell)")
     p.add_argument("--test-scenes", type=int, default=4, help="2 images each, per setting")
     args = p.parse_args(argv)
@@ -134,8 +143,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     adapted = adapt.main([
         "--meshes", "procedural:5", "--seed", str(ADAPTED_SEED), "--workdir",
-        str(args.out / "adapted"), "--minutes", f"{args.minutes:g}", "--config", args.config,
-        "--from", args.init_from,
+        str(args.out / "adapted"), "--minutes", f"{args.minutes:g}", "--detector", args.detector,
+        "--config", args.config, "--from", args.init_from,
         "--train-scenes", str(args.train_scenes), "--test-scenes", str(args.test_scenes),
         "--refiner-minutes", f"{args.refiner_minutes:g}"])
 

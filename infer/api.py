@@ -29,6 +29,8 @@ from typing import Any
 
 import numpy as np
 
+from infer.cell_detect import SCORE_THRESHOLD as CELL_SCORE_THRESHOLD
+from infer.cell_detect import CellDetector
 from infer.checkpoint import load_detector, load_refiner
 from infer.contour_refine import ContourRefiner
 from infer.detect import SCORE_THRESHOLD as DETECTOR_SCORE_THRESHOLD
@@ -40,6 +42,7 @@ from infer.scene import Instances, find_instances, render_masks
 from infer.shape_detect import SCORE_THRESHOLD as TEMPLATES_SCORE_THRESHOLD
 from infer.shape_detect import ShapeSearchDetector, load_score_weights
 from infer.shipped import CONTOUR, default_refiner, shipped
+from threept_jax.data import dense_run
 from threept_jax.data.bop import Camera
 from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.models.configs import DetectorConfig, RefinerConfig
@@ -56,18 +59,23 @@ __all__ = ["Camera", "Models", "TrackedFrame", "load", "run_scene", "refine", "t
            "DEFAULT_CACHE", "DETECTORS"]
 
 #: The detectors ``load(detector=...)`` and the commands' ``--detector`` name: "3pt", the
-#: 3PT-D network (a training run, or the shipped one), and "templates", the training-free shape
-#: search from the CAD model alone (:mod:`infer.shape_detect`).
-DETECTORS = ("3pt", "templates")
-#: Each detector's default score threshold: both score a probability, calibrated on different
+#: 3PT-D network (a training run, or the shipped one); "templates", the training-free shape
+#: search from the CAD model alone (:mod:`infer.shape_detect`); "cell", a cell's own trained
+#: dense detector (:mod:`infer.cell_detect`, ``python -m train.cell_detector``).
+DETECTORS = ("3pt", "templates", "cell")
+#: Each detector's default score threshold: each scores a probability, calibrated on different
 #: data (a noisy featureless image's template candidates score up to 0.35).
-SCORE_THRESHOLDS = {"3pt": DETECTOR_SCORE_THRESHOLD, "templates": TEMPLATES_SCORE_THRESHOLD}
+SCORE_THRESHOLDS = {"3pt": DETECTOR_SCORE_THRESHOLD, "templates": TEMPLATES_SCORE_THRESHOLD,
+                    "cell": CELL_SCORE_THRESHOLD}
 
 
 def default_detector(workdir) -> str:
-    """The detector :func:`load` picks when none is named: 3PT-D for a run directory, else
-    the training-free templates detector."""
-    return "3pt" if workdir is not None else "templates"
+    """The detector :func:`load` picks when none is named: the cell detector for a cell
+    detector's run, 3PT-D for another run directory, else the training-free templates
+    detector."""
+    if workdir is None:
+        return "templates"
+    return "cell" if (pathlib.Path(workdir) / dense_run.RUN_FILE).is_file() else "3pt"
 
 
 @dataclasses.dataclass
@@ -100,6 +108,7 @@ class Models:
     cache_dir: pathlib.Path | None = None
     shape_search: ShapeSearchSettings | None = None
     templates_score: dict[int, tuple[float, ...]] | None = None
+    cell: tuple[Any, list[int]] | None = None
     # Per-object-set caches; not init fields, so a dataclasses.replace starts empty ones.
     _scene_detectors: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
     _pose_renderers: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
@@ -110,7 +119,7 @@ class Models:
         """Onboard ``{obj_id: mesh file or Mesh}`` (mesh units checked on load). The
         training-free detector needs only the meshes (and builds its templates when it first
         sees an object set)."""
-        if self.shape_search is not None:
+        if self.shape_search is not None:  # the templates and cell detectors need no bank
             return refine_objects(dict(meshes), units=units)
         if self.onboarder is None:
             raise ValueError("onboarding needs a detector: infer.load(DETECTOR_RUN, ...)")
@@ -134,11 +143,12 @@ class Models:
         return self._scene_refiners[key]
 
     def scene_detector(self, objects: Sequence[OnboardedObject], **options: Any
-                       ) -> SceneDetector | ShapeSearchDetector:
+                       ) -> SceneDetector | ShapeSearchDetector | CellDetector:
         """The detector of these objects and options, built once and reused, so its compiled
         functions (one per image size) survive across calls: a :class:`SceneDetector` (3PT-D)
-        or, with ``load(detector="templates")``, a :class:`ShapeSearchDetector` (options
-        ``depth_range``, ``score_threshold``, ``max_detections``)."""
+        or, with ``load(detector="templates")``, a :class:`ShapeSearchDetector`, or with a cell
+        detector's run a :class:`CellDetector` (options ``depth_range``, ``score_threshold``,
+        ``max_detections``)."""
         key = (tuple(o.obj_id for o in objects),
                tuple(sorted((k, tuple(np.ravel(v)) if np.ndim(v) else v)
                             for k, v in options.items())))
@@ -146,8 +156,12 @@ class Models:
             if self.shape_search is not None:
                 if options.pop("num_scales", None) is not None:
                     raise ValueError("num_scales is a 3PT-D option (pan-and-scan); the templates "
-                                     "detector searches the whole image: drop it")
+                                     "and cell detectors search the whole image: drop it")
                 cache = None if self.cache_dir is None else self.cache_dir / "contours"
+            if self.cell is not None:
+                self._scene_detectors[key] = CellDetector(
+                    *self.cell, objects, settings=self.shape_search, cache_dir=cache, **options)
+            elif self.shape_search is not None:
                 self._scene_detectors[key] = ShapeSearchDetector(
                     objects, settings=self.shape_search, cache_dir=cache,
                     score_weights=self.templates_score, **options)
@@ -177,7 +191,10 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
     3PT-D network: the detector training run or exported model ``workdir`` (``step``:
     ``"best"``, ``"latest"`` or a number; a ``workdir`` implies ``"3pt"``), else the shipped
     one (``models/``, :mod:`infer.shipped`), with an onboarder whose cache lives under
-    ``cache_dir/onboarding`` (None: no disk cache).
+    ``cache_dir/onboarding`` (None: no disk cache); or ``"cell"``, a cell's own trained
+    detector (:class:`infer.cell_detect.CellDetector`), the run ``workdir`` of ``python -m
+    train.cell_detector`` (a ``workdir`` holding one implies ``"cell"``), with the default
+    refiner when none is named.
 
     ``refiner``: a 3PT-R training run (``refiner_step``), ``"contour"`` (the training-free
     contour refiner, :mod:`infer.contour_refine`, its contours cached under
@@ -198,7 +215,10 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
     if detector == "templates" and workdir is not None:
         raise ValueError("a detector run (workdir) is 3PT-D: pass detector='3pt', or drop "
                          "workdir for the training-free templates detector")
-    if workdir is None:
+    if detector == "cell" and workdir is None:
+        raise ValueError("the cell detector is trained per cell: pass its run "
+                         "(python -m train.cell_detector --workdir DIR) as workdir")
+    if workdir is None or detector == "cell":
         refiner = refiner or default_refiner()
         if detector == "3pt":
             workdir = shipped("detector")
@@ -207,7 +227,10 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
     if templates_score is not None and detector != "templates":
         raise ValueError("templates_score calibrates the templates detector; 3PT-D scores with "
                          "its network: drop it or pass detector='templates'")
-    if detector == "templates":
+    if detector == "cell":
+        network, class_ids, _ = dense_run.load(workdir)
+        models.cell, models.shape_search = (network, class_ids), ShapeSearchSettings()
+    elif detector == "templates":
         models.shape_search = ShapeSearchSettings()
         if templates_score is not None:
             models.templates_score = load_score_weights(templates_score)
@@ -280,7 +303,8 @@ def run_scene(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarra
                          "infer.load(detector='templates'); to refine poses from another "
                          "method use infer.refine")
     if models.shape_search is not None and len(images) > 1:
-        raise ValueError("the templates detector is single-view for now: run it per view, or "
+        which = "cell" if models.cell is not None else "templates"
+        raise ValueError(f"the {which} detector is single-view for now: run it per view, or "
                          "use 3PT-D for a rig's fused detections (infer.load(detector='3pt'), "
                          "--detector 3pt)")
     detector = models.scene_detector(objects, **detector_options)

@@ -83,7 +83,9 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
     detector only sometimes, the help's words for when."""
     p.add_argument("--workdir", type=pathlib.Path, default=None,
                    help="a 3PT-D training run (train/launch.py --workdir) or exported model "
-                        f"(implies --detector 3pt); with --detector 3pt, default: "
+                        "(implies --detector 3pt), or a cell detector's run (python -m "
+                        "train.cell_detector; implies --detector cell); with --detector 3pt, "
+                        "default: "
                         f"{describe('detector')}"
                         + ("" if workdir_when is None else f"; used {workdir_when}"))
     p.add_argument("--detector", choices=DETECTORS, default=None,
@@ -91,7 +93,9 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
                         "(selective-search proposals, contour templates fitted to each, the best "
                         "poses verified by the contour refiner; one view); 3pt: the 3PT-D "
                         "network of --workdir, default the shipped one (needed for a rig's "
-                        "views). Default: 3pt with --workdir, else templates")
+                        "views); cell: a cell's own trained detector (--workdir), its boxes "
+                        "posed by the templates' fit. Default: the kind of --workdir's run, "
+                        "else templates")
     p.add_argument("--templates-score", type=pathlib.Path, default=None, metavar="FILE",
                    help="the templates detector's score calibrated on the cell's own parts "
                         "(python -m train.templates_score --cell DATA --out FILE: a logistic "
@@ -116,7 +120,7 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
     p.add_argument("--score-threshold", type=fraction, default=None,
                    help="keep detections scoring above this, in [0, 1] (default: 0.4 with the "
                         "templates detector, whose candidates on a noisy featureless image "
-                        "score up to 0.35; 0.1 with 3PT-D)")
+                        "score up to 0.35; 0.1 with 3PT-D; 0.25 with the cell detector)")
     p.add_argument("--max-detections", type=int_at_least(1), default=100, help="per image")
     p.add_argument("--cache-dir", type=pathlib.Path, default=DEFAULT_CACHE,
                    help="onboarding and compilation cache (env THREEPT_CACHE)")
@@ -152,7 +156,8 @@ def camera_options(p: argparse.ArgumentParser, per: str) -> None:
 
 
 def detector_kind(args) -> str:
-    """``templates`` or ``3pt``: ``--detector``, else 3PT-D when ``--workdir`` names a run."""
+    """``templates``, ``3pt`` or ``cell``: ``--detector``, else the kind of the run
+    ``--workdir`` names (:func:`infer.api.default_detector`), else ``templates``."""
     return args.detector or default_detector(args.workdir)
 
 
@@ -178,7 +183,7 @@ def load_models(args, detector: bool = True):
     refiner = (args.refiner or default_refiner()) if refining else None
     kind = detector_kind(args)
     if kind == "templates" and args.workdir is not None:
-        raise ValueError("--workdir is a 3PT-D run; --detector templates needs no network: "
+        raise ValueError("--workdir is a detector run; --detector templates needs no network: "
                          "drop one of them")
     if getattr(args, "templates_score", None) is not None and kind != "templates":
         raise ValueError("--templates-score calibrates the templates detector; 3PT-D scores "
@@ -186,7 +191,11 @@ def load_models(args, detector: bool = True):
     if not detector and refiner is None:
         raise ValueError("no model to load: --refiner none leaves this command nothing to run; "
                          "drop it (the default refiner) or pass --refiner contour|RUN")
-    workdir = (args.workdir or shipped("detector")) if detector and kind == "3pt" else None
+    workdir = None
+    if detector and kind == "3pt":
+        workdir = args.workdir or shipped("detector")
+    elif detector and kind == "cell":
+        workdir = args.workdir
     models = load(workdir, args.step, refiner=refiner,
                   refiner_step=getattr(args, "refiner_step", "best"), cache_dir=args.cache_dir,
                   num_templates=args.num_templates, detector=kind if detector else None,

@@ -237,3 +237,75 @@ class ShapeSearchDetector:
                                   refined[i][None].astype(np.float32),
                                   np.array([scores[i]], np.float32), np.zeros(0, np.float32)))
         return dets
+
+    def poses_in_boxes(self, image: np.ndarray, K: np.ndarray, boxes: np.ndarray,
+                       obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The pose of each given box of a known part: the part's templates fitted inside the
+        box (stage 2), the best of them (``2 * per_proposal`` per box at most, fewer when the
+        ``candidates`` shared by the boxes run out) refined by the contour refiner (stage 3), the one with the best
+        calibrated score kept (the detector's score weights of the part: a right outline, not
+        only a well-fitted one). image uint8 [H, W, 3], K [3, 3], boxes [n, 4] xyxy, obj [n]
+        (rows of ``objects``); returns poses [n, 4, 4] T_cam_obj and those scores [n] (-inf and
+        a NaN pose where no template of the part fits the box: outside the depth range, or a
+        part whose renders have no outline). At most ``candidates // per_proposal`` boxes a
+        call."""
+        s = self.settings
+        n = len(boxes)
+        most = s.candidates // s.per_proposal
+        if n > most:
+            raise ValueError(f"{n} boxes, at most {most} per call (candidates // per_proposal)")
+        poses = np.full((n, 4, 4), np.nan)
+        scores = np.full(n, -np.inf)
+        if not n:
+            return poses, scores
+        hw = image.shape[:2]
+        K = validate_intrinsics(K, "K", image_hw=hw).astype(np.float64)
+        response = jnp.asarray(orientation_response(image, s.spread, s.min_gradient))
+        xywh = np.concatenate([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]], -1).astype(np.float32)
+        # Twice the templates a proposal keeps (fixed: one compiled fit for every box count).
+        k = min(2 * s.per_proposal, s.num_views * s.num_inplane)
+        found = []  # (template score, box, pose)
+        for o in np.unique(obj):
+            if self._empty[o]:
+                continue
+            rows = np.flatnonzero(obj == o)
+            padded = np.zeros((most, 4), np.float32)
+            padded[:, 2:] = 1.0
+            padded[:len(rows)] = xywh[rows]
+            t = self.templates
+            score, idx, depth, uv = (a[:len(rows)] for a in jax.device_get(fit_templates(
+                response, padded, t.xy[o], t.bins[o], t.valid[o], K.astype(np.float32),
+                self._depths(o, K, hw), box_fit=s.box_fit, k=k)))
+            ok = score > 0
+            pose = poses_from_fit(self._rotations[o][idx[ok]],
+                                  np.broadcast_to(self.centers[o], (ok.sum(), 3)),
+                                  depth[ok].astype(np.float64), uv[ok].astype(np.float64), K)
+            box = np.broadcast_to(rows[:, None], ok.shape)[ok]
+            found += list(zip(score[ok], box, pose))
+        if not found:
+            return poses, scores
+        # The best-fitted candidates of each box, as many as the verification takes.
+        found.sort(key=lambda c: -c[0])
+        taken, per_box = [], np.zeros(n, int)
+        for c in found:
+            if per_box[c[1]] < s.candidates // n:
+                taken.append(c)
+                per_box[c[1]] += 1
+        template, cand_box, cand_pose = (np.array(a) for a in zip(*taken))
+        m = len(taken)
+        pad = np.concatenate([np.arange(m), np.zeros(s.candidates - m, np.int64)])
+        o = jnp.asarray(obj[cand_box[pad]], jnp.int32)
+        K32 = jnp.asarray(K, jnp.float32)
+        refined, contour, _, lines = verify(
+            self.model, jnp.asarray(image), K32, jnp.asarray(cand_pose[pad], jnp.float32), o,
+            settings=s.contour, lines=s.lines)
+        features = outline_features(self.model, response, K32, refined, o, contour,
+                                    jnp.asarray(template[pad], jnp.float32), lines)
+        refined, features = np.asarray(refined)[:m], np.asarray(features)[:m]
+        calibrated = np.asarray(calibrated_score(features,
+                                                 self.score_weights[obj[cand_box]]))
+        for i in range(m):
+            b = cand_box[i]
+            if np.isfinite(calibrated[i]) and calibrated[i] > scores[b]:
+                scores[b], poses[b] = calibrated[i], refined[i]
+        return poses, scores

@@ -28,7 +28,7 @@ FAST_COMPILE = ("tests/train/test_refiner_trainer.py", "tests/pipeline/test_refi
                 "tests/infer/test_track_cli.py", "tests/infer/test_bop_runner.py",
                 "tests/infer/test_refine_api.py", "tests/infer/test_detect.py",
                 "tests/train/test_cluster.py", "tests/train/test_resume.py",
-                "tests/scripts/test_device.py")
+                "tests/scripts/test_device.py", "tests/test_dense.py")
 #: Programs that FAST_COMPILE modules still compile optimised: they run far more than they
 #: compile. The rasterizer renders onboarding banks and contour models (1000 views a mesh):
 #: unoptimised, a contour model took 5.3 s a mesh against 2.0 s (warm, 2 cores).
@@ -38,7 +38,8 @@ OPTIMISED = ("jit__render_impl",)
 #: eager operations run once or twice (test_refiner_learning's evaluation took 19 s to compile
 #: optimised).
 FAST_BUT = {"tests/train/test_refiner_learning.py": ("jit_train_step",),
-            "tests/train/test_learning.py": ("jit_train_step",)}
+            "tests/train/test_learning.py": ("jit_train_step",),
+            "tests/train/test_cell_detector.py": ("jit_step",)}
 #: The programs the running module compiles optimised; None: all of them (no FAST_COMPILE).
 _optimised: list[tuple[str, ...] | None] = [None]
 _create_compile_options = _pxla.create_compile_options
@@ -90,7 +91,8 @@ SLOW_FIRST = (  # by their measured test time, longest first (docs/testing.md), 
     "tests/infer/test_refine_api.py", "tests/infer/test_bop_runner.py",
     "tests/train/test_resume.py", "tests/scripts/test_device.py",
     "tests/pipeline/test_refine_ladder.py", "tests/train/test_refiner_learning.py",
-    "tests/train/test_learning.py", "tests/train/test_campaign.py",
+    "tests/train/test_learning.py", "tests/train/test_cell_detector.py",
+    "tests/train/test_campaign.py",
     "tests/infer/test_shipped_guard.py", "tests/pipeline/test_refinement.py",
     "tests/pipeline/test_contour.py", "tests/pipeline/test_shape_search.py",
     "tests/datagen/test_mesh_kinds.py",

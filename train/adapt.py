@@ -11,19 +11,24 @@ that with our own data engine, in stages that each resume when the command is ru
    disjoint sets of one mesh pool: ``W/data/train`` (training), ``W/data/val`` (checkpoint
    selection and the score threshold of the overlays) and ``W/data/test`` (the report;
    neither training nor selection sees it).
-2. **Records** (``datagen.pack``): ArrayRecord shards and render banks at the model's render
-   size -> ``W/records``.
-3. **Budget**: the warm step time of each model trained here is measured once (a few compiled
-   steps of a throw-away state) and the number of steps that fits its budget (``--minutes``
-   for the detector, ``--refiner-minutes`` for the refiner) is fixed in ``W/adapt.json``, so
-   that a resumed run keeps its learning-rate schedule.
-4. **Detector training** (``train.trainer_detector``), fine-tuning the shipped detector
+2. **Records** (``datagen.pack``): ArrayRecord shards -> ``W/records``, with render banks at
+   the model's render size when 3PT-D trains (3PT-R and the cell detector read none).
+3. **Detector training**, by default (``--detector cell``) the dense cell detector
+   (``python -m train.cell_detector``: the cell's parts at every place of full images,
+   mosaics; docs/training.md, "The dense cell detector") from scratch for ``--minutes``, its
+   steps planned from its own measured step time -> ``W/cell``, a run that ``python -m infer
+   images --workdir W/cell`` loads (its boxes posed by the templates' fit) and that resumes
+   when killed. With ``--detector 3pt``, 3PT-D: the warm step time of each model trained here
+   is measured once (a few compiled steps of a throw-away state) and the number of steps that
+   fits its budget (``--minutes`` for the detector, ``--refiner-minutes`` for the refiner) is
+   fixed in ``W/adapt.json``, so that a resumed run keeps its learning-rate schedule; then
+   ``train.trainer_detector`` fine-tunes the shipped detector
    (``models/``, :mod:`infer.shipped`) by default, ``--from RUN``'s best checkpoint, or from
    scratch (``--from scratch``); fine-tuning keeps the model section of the run it starts
-   from. ``W`` is an ordinary run directory (``config.json``, ``checkpoints/``, ``tb/``):
+   from. ``W`` is then an ordinary run directory (``config.json``, ``checkpoints/``, ``tb/``):
    ``python -m infer images --workdir W`` loads it, and a killed run resumes from its last
    checkpoint.
-5. **Refiner training** (``train.trainer_refiner``, only with ``--refiner-minutes`` > 0; the
+4. **Refiner training** (``train.trainer_refiner``, only with ``--refiner-minutes`` > 0; the
    default 0 trains none and the contour refiner refines the test): a 3PT-R run of
    ``--refiner-config`` (``train/configs/refiner.py``) from scratch on the same records ->
    ``W/refiner``, an ordinary refiner run (``python -m infer bop --refiner W/refiner``); its
@@ -33,9 +38,9 @@ that with our own data engine, in stages that each resume when the command is ru
    held-out recall, or leaves it as it was, is not used for the test (:func:`refiner_helps`):
    the training-free contour refiner (``--refiner contour``) refines instead, as it does
    without ``--refiner-minutes``.
-6. **Test** (found done when ``W/report.json`` tested the same scenes with the same best
-   checkpoints and options): the best detector checkpoint (by full-image AP50 on the val
-   scenes) runs ``python -m infer bop`` on the val scenes, whose best-F1 score becomes the
+5. **Test** (found done when ``W/report.json`` tested the same scenes with the same best
+   checkpoints and options): the cell detector, or 3PT-D's best checkpoint (by full-image
+   AP50 on the val scenes), runs ``python -m infer bop`` on the val scenes, whose best-F1 score becomes the
    overlay threshold, then on
    the test scenes: full images, every part queried, the best detections of an image whatever
    their score (as many as a scene holds instances at most, :func:`max_detections`), refined
@@ -84,7 +89,14 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                    help="run folder: data/, records/, the training run, refiner/, test/, "
                         "report.json")
     p.add_argument("--minutes", type=float, default=10.0,
-                   help="detector training budget (wall clock)")
+                   help="detector training budget (wall clock); the cell detector on 2 CPU "
+                        "cores: test box AP50 0.16-0.22 after 3.5-5 minutes, 0.52-0.68 after 10 "
+                        "on the demo's cell (docs/training.md, 'The dense cell detector')")
+    p.add_argument("--detector", default="cell", choices=("cell", "3pt"),
+                   help="cell: the dense cell detector (train.cell_detector: the cell's parts at "
+                        "every place of full images; 0.65 test box AP50 in 10 CPU minutes on "
+                        "the demo's cell, docs/training.md), its boxes posed by the templates' "
+                        "fit; 3pt: 3PT-D (--from, --config)")
     p.add_argument("--from", dest="init_from", default="shipped", metavar="RUN|shipped|scratch",
                    help="the detector to fine-tune (a training run or exported model: its best "
                         "checkpoint), 'shipped' (models/, infer.shipped) or 'scratch'")
@@ -197,7 +209,9 @@ def generate(args, data: pathlib.Path, sets: Sequence[str] = ("train", "val", "t
         G.main(["--out", str(data / name), *runs[name], *common])
 
 
-def pack(data: pathlib.Path, records: pathlib.Path, render_size: int) -> None:
+def pack(data: pathlib.Path, records: pathlib.Path, render_size: int | None) -> None:
+    """Records of the train and val scenes, with render banks at ``render_size`` (None: no
+    banks, which only 3PT-D and 3PT-R read)."""
     from datagen import pack as Pk
 
     for name, folder in (("train", "train_pbr"), ("val", "val_pbr")):
@@ -205,8 +219,10 @@ def pack(data: pathlib.Path, records: pathlib.Path, render_size: int) -> None:
             print(f"   {records / name} exists, skipped")
             continue
         # No --split-label: every part is trained on and evaluated.
+        banks = (["--no-banks"] if render_size is None else
+                 ["--bank-size", str(render_size), "--num-templates", "512"])
         Pk.main(["--scenes", str(data / name / folder), "--out", str(records), "--name", name,
-                 "--bank-size", str(render_size), "--num-templates", "512", "--quiet"])
+                 *banks, "--quiet"])
 
 
 # --------------------------------------------------------------------------- stages 3-5
@@ -440,13 +456,17 @@ def inputs_of_test(workdir: pathlib.Path, data: pathlib.Path, refiner: pathlib.P
                    args: argparse.Namespace) -> dict:
     """What the test stage's figures depend on: the val and test scenes, the detector's and
     the refiner's best checkpoints, and the options of the test."""
+    from threept_jax.data import dense_run
     from threept_jax.data.run_dir import RunDir
 
     refiner_step = (None if isinstance(refiner, str) else
                     int(RunDir(refiner, model="refiner").best_step()))
+    run_file = workdir / dense_run.RUN_FILE
+    detector_step = (json.loads(run_file.read_text())["steps"] if run_file.is_file()
+                     else int(RunDir(workdir).best_step()))
     scenes = {name: sorted(p.name for p in (data / name / "val_pbr").iterdir() if p.is_dir())
               for name in ("val", "test")}
-    return {"scenes": scenes, "detector_step": int(RunDir(workdir).best_step()),
+    return {"scenes": scenes, "detector_step": detector_step,
             "refiner": str(refiner), "refiner_step": refiner_step, "overlays": args.overlays,
             "instances": args.instances}
 
@@ -474,35 +494,50 @@ def main(argv: Sequence[str] | None = None) -> dict:
     data, records, cache = w / "data", w / "records", w / "cache"
     refiner = w / "refiner" if args.refiner_minutes > 0 else None
     use_refiner = refiner or CONTOUR
-    n = 6 if refiner else 5
+    n = (6 if refiner else 5) - (args.detector == "cell")
     minutes: dict[str, float] = {}
 
     start = stage(f"1/{n} scenes of {' '.join(args.meshes)} -> {data}")
     generate(args, data)
     minutes["scenes"] = done(start) / 60
 
-    configs = {"detector": base_config(args, records)}
+    cell = args.detector == "cell"
+    configs = {} if cell else {"detector": base_config(args, records)}
     if refiner:
         configs["refiner"] = refiner_config(args, records)
-    start = stage(f"2/{n} records and render banks -> {records}")
-    pack(data, records, int(configs["detector"].model.render_size))
+    start = stage(f"2/{n} records{'' if cell else ' and render banks'} -> {records}")
+    pack(data, records, None if cell else int(configs["detector"].model.render_size))
     minutes["records"] = done(start) / 60
 
-    budgets = ", ".join(f"the {c.model.variant} {name} in {m:g} minutes" for name, c, m in (
-        ("detector", configs["detector"], args.minutes),
-        ("refiner", configs.get("refiner"), args.refiner_minutes)) if c is not None)
-    start = stage(f"3/{n} budget: steps of {budgets}")
-    budget = plan(args, configs, w)
-    minutes["budget"] = done(start) / 60
+    if cell:
+        from train import cell_detector
 
-    steps = budget["detector"]["steps"]
-    start = stage(f"4/{n} detector training ({steps} steps, "
-                   f"{'from ' + str(args.init_from) if args.init_from else 'from scratch'}) -> {w}")
-    train_to(configs["detector"], steps, w, evals=NUM_EVALS)
-    minutes["training"] = done(start) / 60
+        # The cell detector plans its steps from its own measured step time.
+        detector = w / "cell"
+        start = stage(f"3/{n} cell detector training ({args.minutes:g} minutes, from scratch) "
+                      f"-> {detector}")
+        trained = cell_detector.train(records, detector, minutes=args.minutes, val=data / "val")
+        steps = trained["steps"]
+        minutes["training"] = done(start) / 60
+        budget = plan(args, configs, w) if refiner else {}
+    else:
+        detector = w
+        budgets = ", ".join(f"the {c.model.variant} {name} in {m:g} minutes" for name, c, m in (
+            ("detector", configs["detector"], args.minutes),
+            ("refiner", configs.get("refiner"), args.refiner_minutes)) if c is not None)
+        start = stage(f"3/{n} budget: steps of {budgets}")
+        budget = plan(args, configs, w)
+        minutes["budget"] = done(start) / 60
+
+        steps = budget["detector"]["steps"]
+        start = stage(f"4/{n} detector training ({steps} steps, "
+                      f"{'from ' + str(args.init_from) if args.init_from else 'from scratch'}) "
+                      f"-> {w}")
+        train_to(configs["detector"], steps, w, evals=NUM_EVALS)
+        minutes["training"] = done(start) / 60
 
     if refiner:
-        start = stage(f"5/{n} refiner training ({budget['refiner']['steps']} steps, from "
+        start = stage(f"{n - 1}/{n} refiner training ({budget['refiner']['steps']} steps, from "
                        f"scratch) -> {refiner}")
         train_to(configs["refiner"], budget["refiner"]["steps"], refiner, evals=NUM_EVALS)
         minutes["refiner_training"] = done(start) / 60
@@ -520,13 +555,15 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     start = stage(f"{n}/{n} full-image test on new scenes -> {w / 'test'}"
                    + f", refined by {use_refiner}")
-    inputs = inputs_of_test(w, data, use_refiner, args)
+    inputs = inputs_of_test(detector, data, use_refiner, args)
     report = tested(w / "report.json", inputs)
     if report is None:
-        report = test(w, data, w, cache, args.overlays, args.instances, refiner=use_refiner)
+        report = test(detector, data, w, cache, args.overlays, args.instances,
+                      refiner=use_refiner)
     minutes["test"] = done(start) / 60
-    report.update(steps=steps, config=configs["detector"].model.variant, minutes=minutes,
-                  test_inputs=inputs)
+    report.update(steps=steps, detector=args.detector,
+                  config="dense" if cell else configs["detector"].model.variant,
+                  minutes=minutes, test_inputs=inputs)
     if refiner:
         report.update(refiner_steps=budget["refiner"]["steps"],
                       refiner_config=configs["refiner"].model.variant, refiner_heldout=heldout,

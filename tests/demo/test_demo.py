@@ -54,8 +54,9 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
     report = demo.main(["--out", str(tmp_path / "out")])
 
     argv = calls["adapt"]
-    assert float(argv[argv.index("--refiner-minutes") + 1]) > 0  # a refiner by default
-    assert argv[argv.index("--from") + 1] == "scratch"  # the tiny detector of a few minutes
+    assert float(argv[argv.index("--refiner-minutes") + 1]) == 0  # no 3PT-R by default
+    assert argv[argv.index("--detector") + 1] == "cell"  # the dense cell detector
+    assert argv[argv.index("--from") + 1] == "scratch"  # (3PT-D's, with --detector 3pt)
     # The zero-shot parts meet the shipped models, as a user who installs threept_jax does.
     assert calls["zero_shot"][:3:2] == (models["detector"], models["refiner"])
     # No training: the templates detector (no workdir) on the adapted setting's own scenes,

@@ -280,6 +280,59 @@ def test_detector_finds_each_part_where_it_was_rendered(scene):
     assert min(d.score for d in best.values()) > max(background, default=0.0)
 
 
+def _gt_boxes(objects, truth):
+    meshes = {o.obj_id: o.mesh for o in objects}
+    out = {}
+    for obj_id, T in truth.items():
+        X = meshes[obj_id].vertices @ T[:3, :3].T + T[:3, 3]
+        uv = X[:, :2] / X[:, 2:] * K[[0, 1], [0, 1]] + K[:2, 2]
+        out[obj_id] = np.concatenate([uv.min(0), uv.max(0)])
+    return out
+
+
+def test_a_cell_detectors_boxes_are_posed_by_the_templates_fit(scene, cache):
+    """The cell detector's composition: its network's boxes (here the rendered parts' true
+    boxes, a few px off, and a low-scored box on the background) are thresholded, named and
+    posed by the part's templates fitted inside them; the pose's centre is where the part was
+    rendered."""
+    from flax import nnx
+
+    from infer.cell_detect import CellDetector
+    from threept_jax.models.dense import DenseConfig, DenseDetector
+
+    img, truth, objects, detector = scene
+    meshes = {o.obj_id: o.mesh for o in objects}
+    gt = _gt_boxes(objects, truth)
+    boxes = np.array([gt[1] + [-3, 2, 2, -2], gt[2] + [2, -3, -2, 3], [250, 180, 300, 230]])
+    rows = np.array([0, 1, 0])
+    poses, scores = detector.poses_in_boxes(img, K, boxes[:2], rows[:2])
+    for obj_id, pose in zip((1, 2), poses):
+        c = pose[:3, :3] @ meshes[obj_id].center + pose[:3, 3]
+        c_gt = truth[obj_id][:3, :3] @ meshes[obj_id].center + truth[obj_id][:3, 3]
+        assert np.linalg.norm(c - c_gt) < 0.1 * c_gt[2]
+    assert np.isfinite(scores).all()
+    net = DenseDetector(DenseConfig(num_classes=3, width=8, depths=(1, 1, 1, 1), neck_width=16,
+                                    image_size=(64, 96)), rngs=nnx.Rngs(0))
+    with pytest.raises(ValueError, match=r"trained on the parts \[2, 5, 9\]; \[1\]"):
+        CellDetector(net, [2, 5, 9], objects)
+    cell = CellDetector(net, [2, 1, 9], objects, depth_range=(330.0, 500.0), settings=SMALL,
+                        cache_dir=cache / "contours", score_threshold=0.3)
+    # The network's output classes: 0 -> part 2, 1 -> part 1, 2 -> part 9 (not queried).
+    cell._boxes = lambda image: (np.concatenate([boxes, boxes[:1]]),
+                                 np.array([0.9, 0.8, 0.2, 0.7]), np.array([1, 0, 1, 2]))
+    found = cell.detect(img, K)
+    assert [d.obj_id for d in found] == [1, 2] and found.best_score == pytest.approx(0.9)
+    for d in found:
+        c = d.pose[:3, :3] @ meshes[d.obj_id].center + d.pose[:3, 3]
+        c_gt = truth[d.obj_id][:3, :3] @ meshes[d.obj_id].center + truth[d.obj_id][:3, 3]
+        assert np.linalg.norm(c - c_gt) < 0.1 * c_gt[2]
+    # A box where no template of its part fits (far too large for the depth range): no pose,
+    # no detection.
+    cell._boxes = lambda image: (np.array([[0.0, 0.0, 320.0, 240.0]]), np.array([0.9]),
+                                 np.array([1]))
+    assert len(cell.detect(img, K)) == 0
+
+
 def test_featureless_images_give_no_detections(scene):
     _, _, _, detector = scene
     for value in (0, 128):

@@ -220,7 +220,7 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
     argv = ["--meshes", "procedural:2", "--seed", "3", "--workdir", str(w), "--minutes", "0.03",
             "--config", "tiny", "--train-scenes", "4", "--test-scenes", "1", "--resolution",
             "96", "80", "--spp", "1", "--instances", "3", "--overlays", "1",
-            "--refiner-minutes", "0.04", "--from", "scratch"]
+            "--refiner-minutes", "0.04", "--detector", "3pt", "--from", "scratch"]
     report = adapt.main(argv)
 
     # Three disjoint scene sets of the same parts: val and test are shards of one held-out set.
@@ -334,3 +334,40 @@ def test_held_out_figures_of_a_run_saved_without_them_are_evaluated(tmp_path, mo
     monkeypatch.setattr(train.eval_refiner, "evaluate_run", evaluate_run)
     assert adapt.refiner_heldout(run) == {"ar_mssd_after": 0.5, "ar_mssd_before": 0.4, "step": 0}
     assert calls == [(run, 0)]
+
+
+def test_adapt_trains_the_cell_detector_by_default_and_tests_it(tmp_path, monkeypatch):
+    """The default adaptation: the dense cell detector trained to its deadline on records
+    without banks, its run tested through the inference path (posed by the templates' fit,
+    refined by the contour refiner), and found done when run again. Toy sizes: the trainer's
+    network and the shape search shrunk."""
+    import functools
+
+    from threept_jax.data import dense_run
+    from threept_jax.pipeline.shape_search import ShapeSearchSettings
+    from train import cell_detector
+
+    monkeypatch.setattr(cell_detector, "train", functools.partial(
+        cell_detector.train, batch_size=2, width=8, depths=(1, 1, 1, 1), neck_width=16,
+        image_size=(64, 96)))
+    small = ShapeSearchSettings(num_views=40, num_inplane=12, max_proposals=50, candidates=32)
+    monkeypatch.setattr(api, "ShapeSearchSettings", lambda: small)
+    w = tmp_path / "w"
+    argv = ["--meshes", "procedural:2", "--seed", "3", "--workdir", str(w), "--minutes", "0.01",
+            "--train-scenes", "3", "--test-scenes", "1", "--resolution", "96", "80", "--spp",
+            "1", "--instances", "3", "--overlays", "1"]
+    report = adapt.main(argv)
+    assert not (w / "records" / "banks").exists()  # the cell detector reads no bank
+    net, class_ids, info = dense_run.load(w / "cell")
+    assert class_ids == [1, 2] and info["steps"] >= 21  # the plan comes after 20 timed steps
+    assert [p["step"] for p in info["curve"]][-1] == info["steps"] and "val" in info["curve"][0]
+    assert report["detector"] == "cell" and report["steps"] == info["steps"]
+    assert report["refiner"] == "contour"
+    for value in (*report["test"].values(), *report["val"].values()):
+        assert 0.0 <= value <= 1.0
+    assert report["test_inputs"]["detector_step"] == info["steps"]
+    # Again: the finished training and the test are found done.
+    results, run = _mtimes(w / "test"), _mtimes(w / "cell")
+    again = adapt.main(argv)
+    assert _mtimes(w / "test") == results and _mtimes(w / "cell") == run
+    assert again["test"] == report["test"]

@@ -1,0 +1,94 @@
+"""A cell's trained detector (``--detector cell``): the dense cell detector finds and names the
+parts, the shape search poses them.
+
+:class:`CellDetector` has the interface of :class:`infer.detect.SceneDetector` (``objects``,
+``detect(image, K)`` -> :class:`infer.detect.Detections`). The network
+(:mod:`threept_jax.models.dense`, trained on the cell's own images by ``python -m
+train.cell_detector``) gives boxes, parts and scores over the whole image in one pass; each of
+the best boxes then gets a pose from its part's contour templates fitted inside it and refined
+by the contour refiner (:meth:`infer.shape_detect.ShapeSearchDetector.poses_in_boxes`), so the
+render-and-compare stage starts where that fit ended. A detection's score is the network's (it
+ranks boxes); its ``pose_scores`` hold the calibrated score of the chosen outline (the
+templates detector's probability that it is right), which ranks poses better (on the demo's
+test images BOP 6D AP 0.22 ranked by it against 0.15-0.17 by the network's score, box AP50
+0.29 against 0.52; docs/training.md).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+
+import numpy as np
+
+from infer.detect import Detection, Detections
+from infer.shape_detect import ShapeSearchDetector
+from threept_jax.geometry.validate import validate_intrinsics
+from threept_jax.models.dense import DenseDetector
+from threept_jax.pipeline.dense import ImageBoxes
+from threept_jax.pipeline.shape_search import ShapeSearchSettings
+
+#: Default score a detection must exceed: the network's probability that the place holds the
+#: part, trained toward the box's IoU (so a right box scores about its IoU).
+SCORE_THRESHOLD = 0.25
+
+
+class CellDetector:
+    """Detects a cell's parts with its trained network (module docstring). ``network`` and
+    ``class_ids`` (obj_id of each output) from :func:`threept_jax.data.dense_run.load`;
+    ``objects``: the parts to find (each ``obj_id`` and ``mesh``, mm), all among the network's;
+    ``poses``: the number of best boxes posed (the rest keep no pose and are dropped)."""
+
+    def __init__(self, network: DenseDetector, class_ids: Sequence[int], objects: Sequence, *,
+                 depth_range: tuple[float, float] | None = None,
+                 score_threshold: float = SCORE_THRESHOLD, max_detections: int = 100,
+                 settings: ShapeSearchSettings | None = None,
+                 cache_dir: str | os.PathLike | None = None):
+        if not objects:
+            raise ValueError("no objects to detect: give at least one mesh")
+        class_ids = [int(c) for c in class_ids]
+        unknown = sorted({int(o.obj_id) for o in objects} - set(class_ids))
+        if unknown:
+            raise ValueError(f"the cell detector was trained on the parts {class_ids}; {unknown} "
+                             "are not among them: train it on the cell's records with those "
+                             "parts (python -m train.cell_detector), or use --detector templates")
+        self.shapes = ShapeSearchDetector(objects, depth_range=depth_range, settings=settings,
+                                          cache_dir=cache_dir)
+        self.objects = self.shapes.objects
+        self.score_threshold = float(score_threshold)
+        self.max_detections = int(max_detections)
+        row = {o.obj_id: i for i, o in enumerate(self.objects)}
+        # Output class -> row of ``objects``, -1 for the network's parts not queried.
+        self._rows = np.array([row.get(c, -1) for c in class_ids])
+        self._boxes = ImageBoxes(network)
+
+    def boxes(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The network's detections of the queried parts: boxes [n, 4] xyxy (image pixels),
+        scores [n] and rows of ``objects`` [n], best first, before the threshold."""
+        boxes, scores, classes = self._boxes(image)
+        rows = self._rows[classes]
+        keep = rows >= 0
+        return boxes[keep], scores[keep], rows[keep]
+
+    def detect(self, image: np.ndarray, K: np.ndarray) -> Detections:
+        """Detections in one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3] (pixels of
+        this image), best first; ``best_score`` is the best score of any box."""
+        image = np.asarray(image)
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise ValueError(f"image must be uint8 RGB [H, W, 3], got {image.dtype} "
+                             f"{image.shape}")
+        K = validate_intrinsics(K, "K", image_hw=image.shape[:2])
+        boxes, scores, rows = self.boxes(image)
+        best = float(scores.max()) if len(scores) else -np.inf
+        keep = np.flatnonzero(scores > self.score_threshold)
+        s = self.shapes.settings
+        keep = keep[:min(self.max_detections, s.candidates // s.per_proposal)]
+        poses, fit = self.shapes.poses_in_boxes(image, K, boxes[keep], rows[keep])
+        dets = Detections(best_score=best)
+        for i, pose, f in zip(keep, poses, fit):
+            if not np.isfinite(pose).all():
+                continue  # no template of the part fits the box
+            dets.append(Detection(self.objects[rows[i]].obj_id, boxes[i].astype(np.float32),
+                                  float(scores[i]), pose[None].astype(np.float32),
+                                  np.array([f], np.float32), np.zeros(0, np.float32)))
+        return dets
