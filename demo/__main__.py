@@ -110,6 +110,7 @@ def summary(name: str, figs: dict) -> list[str]:
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
+    from train.adapt import DETECTORS
     from train.stages import CONFIGS, log_friendly_progress
 
     log_friendly_progress()
@@ -121,7 +122,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
                    help="the detector's training budget: 5 keeps the demo within 15 minutes; "
                         "the cell detector needs about 10 on 2 cores to be useful (test box "
                         "AP50 0.52-0.68 at 10, 0.16-0.22 at 3.5-5; docs/training.md)")
-    p.add_argument("--detector", default="cell", choices=("cell", "3pt"),
+    p.add_argument("--detector", default=DETECTORS[0], choices=DETECTORS,
                    help="the adapted setting's detector (train.adapt --detector): the dense "
                         "cell detector, or 3PT-D")
     p.add_argument("--from", dest="init_from", default="scratch", metavar="RUN|shipped|scratch",

@@ -74,6 +74,8 @@ from train.stages import (
 
 #: Evaluations and checkpoints over a run.
 NUM_EVALS = 4
+#: The detectors it trains (``--detector``), the default first.
+DETECTORS = ("cell", "3pt")
 #: Mean part instances per generated scene (``--instances``).
 INSTANCES = 8
 
@@ -92,11 +94,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                    help="detector training budget (wall clock); the cell detector on 2 CPU "
                         "cores: test box AP50 0.16-0.22 after 3.5-5 minutes, 0.52-0.68 after 10 "
                         "on the demo's cell (docs/training.md, 'The dense cell detector')")
-    p.add_argument("--detector", default="cell", choices=("cell", "3pt"),
+    p.add_argument("--detector", default=DETECTORS[0], choices=DETECTORS,
                    help="cell: the dense cell detector (train.cell_detector: the cell's parts at "
-                        "every place of full images; 0.65 test box AP50 in 10 CPU minutes on "
-                        "the demo's cell, docs/training.md), its boxes posed by the templates' "
-                        "fit; 3pt: 3PT-D (--from, --config)")
+                        "every place of full images), its boxes posed by the templates' fit; "
+                        "3pt: 3PT-D (--from, --config)")
     p.add_argument("--from", dest="init_from", default="shipped", metavar="RUN|shipped|scratch",
                    help="the detector to fine-tune (a training run or exported model: its best "
                         "checkpoint), 'shipped' (models/, infer.shipped) or 'scratch'")
