@@ -171,12 +171,6 @@ def _prefetch(it, depth: int = 2):
         yield x
 
 
-def _network(cfg: DenseConfig, params, batch_stats) -> DenseDetector:
-    graphdef, _, _ = nnx.split(nnx.eval_shape(lambda: DenseDetector(cfg, rngs=nnx.Rngs(0))),
-                               nnx.Param, nnx.BatchStat)
-    return nnx.merge(graphdef, params, batch_stats)
-
-
 #: Train-state saves for resuming, every this many steps (about 2 minutes on 2 CPU cores).
 SAVE_EVERY = 100
 
@@ -284,12 +278,12 @@ def train(records: pathlib.Path, workdir: pathlib.Path, *, minutes: float | None
     for s_n, p, b in dense_run.snapshots(workdir, cfg):
         point = {"step": s_n, "minutes": round(train_s / 60 * s_n / max(n, 1), 2)}
         if val is not None:
-            point["val"] = evaluate(ImageBoxes(_network(cfg, p, b)), cell.class_ids, val,
+            point["val"] = evaluate(ImageBoxes(dense_run.network(cfg, p, b)), cell.class_ids, val,
                                     workdir / f"val_{s_n}.json")
         curve.append(point)
     info["curve"] = curve
     if test is not None:
-        info["test"] = evaluate(ImageBoxes(_network(cfg, *state.ema)), cell.class_ids, test,
+        info["test"] = evaluate(ImageBoxes(dense_run.network(cfg, *state.ema)), cell.class_ids, test,
                                 workdir / "test_detections.json")
     dense_run.save_info(workdir, info)
     return info

@@ -50,6 +50,12 @@ def _abstract(cfg: DenseConfig):
     return graphdef, {"params": params, "batch_stats": stats}
 
 
+def network(cfg: DenseConfig, params: nnx.State, batch_stats: nnx.State) -> DenseDetector:
+    """The network of ``cfg`` with these weights (nothing initialised)."""
+    graphdef, _ = _abstract(cfg)
+    return nnx.merge(graphdef, params, batch_stats)
+
+
 def save(workdir, cfg: DenseConfig, class_ids, params: nnx.State, batch_stats: nnx.State,
          info: dict[str, Any]) -> None:
     """Write the averaged weights and the run file (replacing earlier ones)."""
@@ -71,10 +77,10 @@ def load(workdir) -> tuple[DenseDetector, list[int], dict]:
             "one with python -m train.cell_detector --records R --workdir DIR --minutes M")
     info = json.loads(run_file.read_text())
     cfg = config_from_json(info["config"])
-    graphdef, target = _abstract(cfg)
+    _, target = _abstract(cfg)
     with ocp.StandardCheckpointer() as ckpt:
         restored = ckpt.restore(workdir / WEIGHTS, target)
-    model = nnx.merge(graphdef, restored["params"], restored["batch_stats"])
+    model = network(cfg, restored["params"], restored["batch_stats"])
     model.eval()
     return model, [int(c) for c in info["class_ids"]], info
 
