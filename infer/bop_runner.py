@@ -180,13 +180,16 @@ class Results:
     dets2d: list = dataclasses.field(default_factory=list)
 
     def add(self, scene_id: int, im_id: int, obj_id: int, score: float, T_cam_obj: np.ndarray,
-            mask: np.ndarray, box, seconds: float) -> np.ndarray:
-        """Append one estimate: its 6D row and its 2D row (``box`` xyxy clipped to the image,
-        the RLE of ``mask``); returns the clipped box."""
+            mask: np.ndarray, box, seconds: float, pose_score: float | None = None) -> np.ndarray:
+        """Append one estimate: its 6D row (scored ``pose_score`` when given, else ``score``)
+        and its 2D row (``box`` xyxy clipped to the image, the RLE of ``mask``, scored
+        ``score``); returns the clipped box."""
         from threept_jax.data import bop
 
         x0, y0, x1, y1 = _clip_box(box, mask.shape)
-        self.poses.append(bop.PoseEstimate(scene_id, im_id, obj_id, score, T_cam_obj[:3, :3],
+        self.poses.append(bop.PoseEstimate(scene_id, im_id, obj_id,
+                                           score if pose_score is None else pose_score,
+                                           T_cam_obj[:3, :3],
                                            T_cam_obj[:3, 3], seconds))
         self.dets2d.append(bop.Detection2D(scene_id, im_id, obj_id, score,
                                            (x0, y0, x1 - x0, y1 - y0), bop.mask_to_rle(mask),
@@ -210,7 +213,9 @@ def add_group_rows(results: Results, group, images, Ks, T_cam_world, instances, 
 
     One view: every instance. Several: those whose bounding-sphere centre projects inside the
     view in front of its camera. Score: the detection score (AP ranks by it; the refiner's
-    score is a logit not calibrated across objects). 2D box: amodal, as the evaluation's
+    score is a logit not calibrated across objects); the 6D row's is the instance's
+    ``pose_score`` where the detector gives one (the cell detector: its network's score ranks
+    boxes, the outline's calibrated score ranks poses). 2D box: amodal, as the evaluation's
     ground truth (the box of the full silhouette): for refined instances the projected model
     at the refined pose (the refiner's mask is the visible part: its box shrank occluded
     parts' boxes), else the detection box (the projected model when the view did not detect
@@ -229,7 +234,8 @@ def add_group_rows(results: Results, group, images, Ks, T_cam_world, instances, 
                 box = model_box(obj.mesh.vertices, T, K)
             else:
                 box = x.boxes[v]
-            box = results.add(view.scene_id, view.im_id, x.obj_id, x.score, T, m[v], box, elapsed)
+            box = results.add(view.scene_id, view.im_id, x.obj_id, x.score, T, m[v], box, elapsed,
+                              pose_score=x.pose_score)
             rows.append((i, T, box, m[v]))
         drawn.append(rows)
     return drawn

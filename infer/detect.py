@@ -46,6 +46,9 @@ class Detection:
       pose_scores: [K] template-match score of each hypothesis (invalid ones are -inf).
       template_scores: [T] cosine similarity of the detection's embedding with every template
         of its object (the orientation distribution; multi-view fusion uses it).
+      pose_score: the probability that the pose is right, where the detector ranks poses by
+        another score than boxes (the cell detector: the calibrated score of the pose's
+        outline, where ``score`` is its network's box score); None: ``score`` ranks both.
     """
 
     obj_id: int
@@ -54,6 +57,7 @@ class Detection:
     poses: np.ndarray
     pose_scores: np.ndarray
     template_scores: np.ndarray
+    pose_score: float | None = None
 
     @property
     def pose(self) -> np.ndarray:

@@ -54,6 +54,8 @@ class Instance:
       T_world_obj_initial: the pose before refinement (None when not refined).
       refine_score: the refiner's score of the refined pose (None when not refined): the
         contour refiner's contour score in [0, 1], or a 3PT-R's logit.
+      pose_score: the detection's ``pose_score`` (one view): the probability that the pose
+        is right, which ranks the 6D results where the detector gives it; None: ``score``.
     """
 
     obj_id: int
@@ -65,6 +67,7 @@ class Instance:
     masks: dict
     T_world_obj_initial: np.ndarray | None = None
     refine_score: float | None = None
+    pose_score: float | None = None
 
 
 def assign_pixels(instances: Sequence[Instance]) -> None:
@@ -176,8 +179,8 @@ def find_instances(detector: SceneDetector, images: Sequence[np.ndarray],
     Ks = np.stack([np.asarray(k, np.float32) for k in Ks])
     detections = [detector.detect(img, k) for img, k in zip(images, Ks)]
     if len(images) == 1:
-        instances = [Instance(d.obj_id, d.score, d.pose, d.poses, d.pose_scores, {0: d.box}, {})
-                     for d in detections[0]]
+        instances = [Instance(d.obj_id, d.score, d.pose, d.poses, d.pose_scores, {0: d.box}, {},
+                              pose_score=d.pose_score) for d in detections[0]]
         # The world frame of a single view is its camera frame unless T_cam_world says otherwise.
         T_wc = np.asarray(invert(jnp.asarray(T_cam_world[0])))
         instances = [dataclasses.replace(x, T_world_obj=T_wc @ x.T_world_obj,

@@ -42,6 +42,7 @@ from threept_jax.pipeline.shape_search import (
     FEATURES,
     SCORE_WEIGHTS,
     ShapeSearchSettings,
+    box_variants,
     calibrated_score,
     fit_templates,
     orientation_response,
@@ -160,6 +161,24 @@ class ShapeSearchDetector:
         d = self.diameters[o]
         return np.array([f * d / max(hw), f * d / MIN_DIAMETER_PX], np.float32)
 
+    def _verify(self, image: np.ndarray, response, K: np.ndarray, poses: np.ndarray,
+                obj: np.ndarray, template: np.ndarray):
+        """Stage 3 of m <= ``candidates`` poses [m, 4, 4] of parts ``obj`` [m] (rows of
+        ``objects``) fitted with template scores ``template`` [m]: refined poses [m, 4, 4],
+        outline boxes xyxy [m, 4] and :data:`FEATURES` [m, F] (NumPy). Padded to
+        ``candidates`` (one compiled verification per image size)."""
+        s = self.settings
+        m = len(poses)
+        pad = np.concatenate([np.arange(m), np.zeros(s.candidates - m, np.int64)])
+        K32 = jnp.asarray(K, jnp.float32)
+        o = jnp.asarray(np.asarray(obj)[pad], jnp.int32)
+        refined, contour, xyxy, lines = verify(
+            self.model, jnp.asarray(image), K32, jnp.asarray(np.asarray(poses)[pad], jnp.float32),
+            o, settings=s.contour, lines=s.lines)
+        features = outline_features(self.model, response, K32, refined, o, contour,
+                                    jnp.asarray(np.asarray(template)[pad], jnp.float32), lines)
+        return tuple(np.asarray(a)[:m] for a in (refined, xyxy, features))
+
     def candidates(self, image: np.ndarray, K: np.ndarray) -> Candidates | None:
         """The verified candidates of one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3]
         (pixels of this image), before scoring and NMS; None when there are none (no
@@ -200,18 +219,9 @@ class ShapeSearchDetector:
             return None
         template, obj, poses = (np.array(a) for a in zip(*found))
         chosen = select_candidates(template, obj, s.candidates)
-        n = len(chosen)
-        # A fixed candidate count: one compiled verification per image size.
-        pad = np.concatenate([chosen, np.full(s.candidates - n, chosen[0])])
-        template, poses, obj = template[pad], poses[pad], obj[pad].astype(np.int32)
-        K32 = jnp.asarray(K, jnp.float32)
-        refined, contour, xyxy, lines = verify(
-            self.model, jnp.asarray(image), K32, jnp.asarray(poses, jnp.float32),
-            jnp.asarray(obj), settings=s.contour, lines=s.lines)
-        features = outline_features(self.model, response, K32, refined, jnp.asarray(obj),
-                                    contour, jnp.asarray(template, jnp.float32), lines)
-        refined, xyxy, features = (np.asarray(a)[:n] for a in (refined, xyxy, features))
-        return Candidates(refined, obj[:n], xyxy, features)
+        refined, xyxy, features = self._verify(image, response, K, poses[chosen], obj[chosen],
+                                               template[chosen])
+        return Candidates(refined, obj[chosen].astype(np.int32), xyxy, features)
 
     def detect(self, image: np.ndarray, K: np.ndarray) -> Detections:
         """Detections in one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3] (pixels of
@@ -241,14 +251,15 @@ class ShapeSearchDetector:
     def poses_in_boxes(self, image: np.ndarray, K: np.ndarray, boxes: np.ndarray,
                        obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The pose of each given box of a known part: the part's templates fitted inside the
-        box (stage 2), the best of them (``2 * per_proposal`` per box at most, fewer when the
-        ``candidates`` shared by the boxes run out) refined by the contour refiner (stage 3), the one with the best
-        calibrated score kept (the detector's score weights of the part: a right outline, not
-        only a well-fitted one). image uint8 [H, W, 3], K [3, 3], boxes [n, 4] xyxy, obj [n]
-        (rows of ``objects``); returns poses [n, 4, 4] T_cam_obj and those scores [n] (-inf and
-        a NaN pose where no template of the part fits the box: outside the depth range, or a
-        part whose renders have no outline). At most ``candidates // per_proposal`` boxes a
-        call."""
+        box and inside its shifted and rescaled copies (stage 2, ``box_scales`` and
+        ``box_shift`` of the settings), the best of them (``2 * per_proposal`` per copy, at most
+        ``candidates // n`` per box) refined by the contour refiner (stage 3), the one with the
+        best calibrated score kept (the detector's score weights of the part: a right outline,
+        not only a well-fitted one). image uint8 [H, W, 3], K [3, 3], boxes [n, 4] xyxy, obj
+        [n] (rows of ``objects``); returns poses [n, 4, 4] T_cam_obj and those scores [n], the
+        probability that the pose's outline is right (-inf and a NaN pose where no template of
+        the part fits the box: outside the depth range, or a part whose renders have no
+        outline). At most ``candidates // per_proposal`` boxes a call."""
         s = self.settings
         n = len(boxes)
         most = s.candidates // s.per_proposal
@@ -261,7 +272,9 @@ class ShapeSearchDetector:
         hw = image.shape[:2]
         K = validate_intrinsics(K, "K", image_hw=hw).astype(np.float64)
         response = jnp.asarray(orientation_response(image, s.spread, s.min_gradient))
-        xywh = np.concatenate([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]], -1).astype(np.float32)
+        xywh = np.concatenate([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]], -1)
+        variants = box_variants(xywh, s.box_scales, s.box_shift)  # [n, V, 4]
+        v = variants.shape[1]
         # Twice the templates a proposal keeps (fixed: one compiled fit for every box count).
         k = min(2 * s.per_proposal, s.num_views * s.num_inplane)
         found = []  # (template score, box, pose)
@@ -269,18 +282,18 @@ class ShapeSearchDetector:
             if self._empty[o]:
                 continue
             rows = np.flatnonzero(obj == o)
-            padded = np.zeros((most, 4), np.float32)
+            padded = np.zeros((most * v, 4), np.float32)
             padded[:, 2:] = 1.0
-            padded[:len(rows)] = xywh[rows]
+            padded[:len(rows) * v] = variants[rows].reshape(-1, 4)
             t = self.templates
-            score, idx, depth, uv = (a[:len(rows)] for a in jax.device_get(fit_templates(
+            score, idx, depth, uv = (a[:len(rows) * v] for a in jax.device_get(fit_templates(
                 response, padded, t.xy[o], t.bins[o], t.valid[o], K.astype(np.float32),
                 self._depths(o, K, hw), box_fit=s.box_fit, k=k)))
             ok = score > 0
             pose = poses_from_fit(self._rotations[o][idx[ok]],
                                   np.broadcast_to(self.centers[o], (ok.sum(), 3)),
                                   depth[ok].astype(np.float64), uv[ok].astype(np.float64), K)
-            box = np.broadcast_to(rows[:, None], ok.shape)[ok]
+            box = np.broadcast_to(np.repeat(rows, v)[:, None], ok.shape)[ok]
             found += list(zip(score[ok], box, pose))
         if not found:
             return poses, scores
@@ -292,19 +305,10 @@ class ShapeSearchDetector:
                 taken.append(c)
                 per_box[c[1]] += 1
         template, cand_box, cand_pose = (np.array(a) for a in zip(*taken))
-        m = len(taken)
-        pad = np.concatenate([np.arange(m), np.zeros(s.candidates - m, np.int64)])
-        o = jnp.asarray(obj[cand_box[pad]], jnp.int32)
-        K32 = jnp.asarray(K, jnp.float32)
-        refined, contour, _, lines = verify(
-            self.model, jnp.asarray(image), K32, jnp.asarray(cand_pose[pad], jnp.float32), o,
-            settings=s.contour, lines=s.lines)
-        features = outline_features(self.model, response, K32, refined, o, contour,
-                                    jnp.asarray(template[pad], jnp.float32), lines)
-        refined, features = np.asarray(refined)[:m], np.asarray(features)[:m]
-        calibrated = np.asarray(calibrated_score(features,
-                                                 self.score_weights[obj[cand_box]]))
-        for i in range(m):
+        refined, _, features = self._verify(image, response, K, cand_pose, obj[cand_box],
+                                            template)
+        calibrated = np.asarray(calibrated_score(features, self.score_weights[obj[cand_box]]))
+        for i in range(len(taken)):
             b = cand_box[i]
             if np.isfinite(calibrated[i]) and calibrated[i] > scores[b]:
                 scores[b], poses[b] = calibrated[i], refined[i]

@@ -508,3 +508,18 @@ def test_refine_only_input_errors_exit_2_naming_the_file(dataset, monkeypatch, c
     fails([a if a != str(dataset / "ref") else "none" for a in base],
           "--refine-only refines with a refiner: drop --refiner none")
     fails(base + ["--workdir", str(dataset)], "drop --workdir")
+
+
+def test_a_pose_score_ranks_the_6d_row_and_the_box_score_the_2d_row(tmp_path):
+    """Results.add: the 6D row (the CSV) carries the pose score where one is given, the 2D
+    row (the JSON) the detection score; without one both carry the detection score. Read
+    back by the BOP readers."""
+    results = bop_runner.Results()
+    mask = np.zeros((4, 6), bool)
+    mask[1:3, 2:5] = True
+    results.add(1, 0, 7, 0.9, np.eye(4), mask, [2, 1, 5, 3], 0.5, pose_score=0.25)
+    results.add(1, 0, 8, 0.6, np.eye(4), mask, [2, 1, 5, 3], 0.5)
+    csv_path, json_path = results.write(tmp_path, "x_ds-test")
+    poses, boxes = bop.read_pose_results(csv_path), bop.read_detection_results(json_path)
+    assert [(p.obj_id, p.score) for p in poses] == [(7, 0.25), (8, 0.6)]
+    assert [(d.obj_id, d.score) for d in boxes] == [(7, 0.9), (8, 0.6)]

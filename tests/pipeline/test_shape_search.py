@@ -322,7 +322,10 @@ def test_a_cell_detectors_boxes_are_posed_by_the_templates_fit(scene, cache):
                                  np.array([0.9, 0.8, 0.2, 0.7]), np.array([1, 0, 1, 2]))
     found = cell.detect(img, K)
     assert [d.obj_id for d in found] == [1, 2] and found.best_score == pytest.approx(0.9)
+    # The network's score ranks the boxes, the outline's calibrated score the poses.
+    assert [d.score for d in found] == pytest.approx([0.9, 0.8])
     for d in found:
+        assert 0.0 < d.pose_score < 1.0 and d.pose_scores == pytest.approx([d.pose_score])
         c = d.pose[:3, :3] @ meshes[d.obj_id].center + d.pose[:3, 3]
         c_gt = truth[d.obj_id][:3, :3] @ meshes[d.obj_id].center + truth[d.obj_id][:3, 3]
         assert np.linalg.norm(c - c_gt) < 0.1 * c_gt[2]
@@ -331,6 +334,18 @@ def test_a_cell_detectors_boxes_are_posed_by_the_templates_fit(scene, cache):
     cell._boxes = lambda image: (np.array([[0.0, 0.0, 320.0, 240.0]]), np.array([0.9]),
                                  np.array([1]))
     assert len(cell.detect(img, K)) == 0
+
+
+def test_box_variants_by_hand():
+    """A 100 x 40 box at (10, 20): scaled by 0.5 about its centre (60, 40), then moved by 10 %
+    of the given box's width and height."""
+    v = S.box_variants(np.array([[10.0, 20.0, 100.0, 40.0]]), (0.5, 1.0), 0.1)
+    assert v.shape == (1, 10, 4)
+    np.testing.assert_allclose(v[0, :5], [[35, 30, 50, 20], [45, 30, 50, 20], [25, 30, 50, 20],
+                                          [35, 34, 50, 20], [35, 26, 50, 20]])
+    np.testing.assert_allclose(v[0, 5], [10, 20, 100, 40])
+    np.testing.assert_allclose(S.box_variants(np.array([[0.0, 0.0, 8.0, 8.0]]), (1.0,), 0.0),
+                               [[[0, 0, 8, 8]]])
 
 
 def test_featureless_images_give_no_detections(scene):

@@ -39,6 +39,7 @@ import ctypes.util
 import dataclasses
 import functools
 import threading
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import cv2
@@ -71,6 +72,10 @@ class ShapeSearchSettings:
     max_proposals: selective-search boxes per image; proposal_scale: the image scale it runs at.
     box_fit: a template fits a proposal when their boxes, centred and the template scaled to
       the proposal's area, overlap by this IoU.
+    box_scales, box_shift: a given box (a trained detector's, :func:`box_variants`) is fitted
+      in copies of itself scaled by each of ``box_scales`` about its centre, each also shifted
+      by ``box_shift`` of its width or height left, right, up and down: a network's box is off
+      by a few pixels, and the fit is only as good as its box.
     per_proposal: templates kept per (proposal, part); proposal_nms: IoU of the NMS that thins
       each part's proposals by their best template score.
     candidates: poses refined and scored per image, an equal share per part
@@ -89,6 +94,8 @@ class ShapeSearchSettings:
     max_proposals: int = 300
     proposal_scale: float = 0.5
     box_fit: float = 0.6
+    box_scales: tuple[float, ...] = (0.9, 1.0, 1.1)
+    box_shift: float = 0.08
     per_proposal: int = 8
     proposal_nms: float = 0.5
     candidates: int = 200
@@ -235,6 +242,23 @@ def fit_templates(response: Array, boxes: Array, xy: Array, bins: Array, valid: 
         return top, idx, Z_[idx], jnp.stack([cu_[idx], cv_[idx]], -1)
 
     return jax.lax.map(one, (cu, cv, Z, fits))
+
+
+def box_variants(boxes: np.ndarray, scales: Sequence[float], shift: float) -> np.ndarray:
+    """[n, V, 4] xywh copies of boxes [n, 4] xywh: for each scale (about the box's centre), the
+    scaled box, then it moved by ``shift`` of the given box's width right and left and of its
+    height down and up (V = 5 * len(scales); only the scaled boxes when ``shift`` is 0)."""
+    boxes = np.asarray(boxes, np.float32)
+    moves = [(0.0, 0.0)] + ([(shift, 0.0), (-shift, 0.0), (0.0, shift), (0.0, -shift)]
+                            if shift else [])
+    centre = boxes[:, :2] + boxes[:, 2:] / 2
+    out = []
+    for s in scales:
+        size = boxes[:, 2:] * s
+        for dx, dy in moves:
+            c = centre + np.array([dx, dy], np.float32) * boxes[:, 2:]
+            out.append(np.concatenate([c - size / 2, size], -1))
+    return np.stack(out, 1)
 
 
 def select_candidates(scores: np.ndarray, parts: np.ndarray, n: int) -> np.ndarray:
