@@ -120,7 +120,9 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
     p.add_argument("--score-threshold", type=fraction, default=None,
                    help="keep detections scoring above this, in [0, 1] (default: 0.4 with the "
                         "templates detector, whose candidates on a noisy featureless image "
-                        "score up to 0.35; 0.1 with 3PT-D; 0.25 with the cell detector)")
+                        "score up to 0.35; 0.1 with 3PT-D; 0.25 with the cell detector, its "
+                        "network's boxes: the templates detector's detections it adds keep "
+                        "0.4)")
     p.add_argument("--max-detections", type=int_at_least(1), default=100, help="per image")
     p.add_argument("--cache-dir", type=pathlib.Path, default=DEFAULT_CACHE,
                    help="onboarding and compilation cache (env THREEPT_CACHE)")

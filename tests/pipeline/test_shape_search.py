@@ -316,7 +316,8 @@ def test_a_cell_detectors_boxes_are_posed_by_the_templates_fit(scene, cache):
     with pytest.raises(ValueError, match=r"trained on the parts \[2, 5, 9\]; \[1\]"):
         CellDetector(net, [2, 5, 9], objects)
     cell = CellDetector(net, [2, 1, 9], objects, depth_range=(330.0, 500.0), settings=SMALL,
-                        cache_dir=cache / "contours", score_threshold=0.3)
+                        cache_dir=cache / "contours", score_threshold=0.3,
+                        templates_threshold=None)  # the network's boxes alone
     # The network's output classes: 0 -> part 2, 1 -> part 1, 2 -> part 9 (not queried).
     cell._boxes = lambda image: (np.concatenate([boxes, boxes[:1]]),
                                  np.array([0.9, 0.8, 0.2, 0.7]), np.array([1, 0, 1, 2]))
@@ -329,11 +330,43 @@ def test_a_cell_detectors_boxes_are_posed_by_the_templates_fit(scene, cache):
         c = d.pose[:3, :3] @ meshes[d.obj_id].center + d.pose[:3, 3]
         c_gt = truth[d.obj_id][:3, :3] @ meshes[d.obj_id].center + truth[d.obj_id][:3, 3]
         assert np.linalg.norm(c - c_gt) < 0.1 * c_gt[2]
+    # The templates detector's own detections joined: the same two parts, each once, where
+    # they were rendered (a part both found is kept with the better-scored pose).
+    union = CellDetector(net, [2, 1, 9], objects, depth_range=(330.0, 500.0), settings=SMALL,
+                         cache_dir=cache / "contours", score_threshold=0.3)
+    union._boxes = cell._boxes
+    merged = union.detect(img, K)
+    assert sorted(d.obj_id for d in merged) == [1, 2]
+    for d in merged:
+        c = d.pose[:3, :3] @ meshes[d.obj_id].center + d.pose[:3, 3]
+        c_gt = truth[d.obj_id][:3, :3] @ meshes[d.obj_id].center + truth[d.obj_id][:3, 3]
+        assert np.linalg.norm(c - c_gt) < 0.1 * c_gt[2]
     # A box where no template of its part fits (far too large for the depth range): no pose,
     # no detection.
     cell._boxes = lambda image: (np.array([[0.0, 0.0, 320.0, 240.0]]), np.array([0.9]),
                                  np.array([1]))
     assert len(cell.detect(img, K)) == 0
+
+
+def test_merge_keeps_the_best_pose_of_each_place():
+    """cell_detect.merge by hand: part 1 found twice 20 mm apart at 500 mm depth (under 10 %
+    of it) is one detection, the better pose score's; part 2 at that place, and part 1 100 mm
+    away, are others; a detection without a pose score ranks by its score; ``most`` caps."""
+    from infer.cell_detect import merge
+    from infer.detect import Detection
+
+    def det(obj_id, x, score, pose_score=None):
+        T = np.eye(4)
+        T[:3, 3] = [x, 0.0, 500.0]
+        return Detection(obj_id, np.zeros(4), score, T[None], np.ones(1), np.zeros(0),
+                         pose_score=pose_score)
+
+    centers = {1: np.array([0.0, 0.0, 10.0]), 2: np.zeros(3)}
+    a, b = det(1, 0.0, 0.9, 0.6), det(1, 20.0, 0.3, 0.8)
+    c, d, e = det(2, 0.0, 0.5), det(1, 100.0, 0.2, 0.7), det(1, 45.0, 0.9, 0.1)
+    assert merge([a, b, c, d, e], centers, 10) == [b, d, c]  # e: 25 mm from b
+    assert merge([a, b, c, d, e], centers, 2) == [b, d]
+    assert merge([], centers, 3) == []
 
 
 def test_box_variants_by_hand():
