@@ -160,7 +160,8 @@ class Models:
                 cache = None if self.cache_dir is None else self.cache_dir / "contours"
             if self.cell is not None:
                 self._scene_detectors[key] = CellDetector(
-                    *self.cell, objects, settings=self.shape_search, cache_dir=cache, **options)
+                    *self.cell, objects, settings=self.shape_search, cache_dir=cache,
+                    score_weights=self.templates_score, **options)
             elif self.shape_search is not None:
                 self._scene_detectors[key] = ShapeSearchDetector(
                     objects, settings=self.shape_search, cache_dir=cache,
@@ -224,17 +225,18 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
             workdir = shipped("detector")
     cache = None if cache_dir is None else pathlib.Path(cache_dir)
     models = Models(None, None, None, None, cache_dir=cache)
-    if templates_score is not None and detector != "templates":
-        raise ValueError("templates_score calibrates the templates detector; 3PT-D scores with "
-                         "its network: drop it or pass detector='templates'")
-    if detector == "cell":
-        network, class_ids, _ = dense_run.load(workdir)
-        models.cell, models.shape_search = (network, class_ids), ShapeSearchSettings()
-    elif detector == "templates":
+    if templates_score is not None and detector == "3pt":
+        raise ValueError("templates_score calibrates the templates detector (alone or in the "
+                         "cell detector); 3PT-D scores with its network: drop it or pass "
+                         "detector='templates'")
+    if detector in ("cell", "templates"):
         models.shape_search = ShapeSearchSettings()
         if templates_score is not None:
             models.templates_score = load_score_weights(templates_score)
-    else:
+    if detector == "cell":
+        network, class_ids, _ = dense_run.load(workdir)
+        models.cell = (network, class_ids)
+    elif detector == "3pt":
         model, cfg, step = load_detector(workdir, step)
         model_id = f"{pathlib.Path(workdir).resolve()}@{step}"
         models = Models(model, cfg, step, Onboarder(

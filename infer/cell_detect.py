@@ -27,7 +27,7 @@ refiner, 2 cores.
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -76,14 +76,17 @@ class CellDetector:
     calibrated score the templates detector's own detections must exceed to join (its default
     threshold: a featureless noisy image scores up to 0.35), None: the network's boxes
     alone (about 1.5 s an image less on 2 cores). ``max_detections``: per image, after the
-    merge."""
+    merge. ``score_weights``: a cell's calibration of the templates' score
+    (:func:`infer.shape_detect.load_score_weights`), for the poses' scores and the templates'
+    detections."""
 
     def __init__(self, network: DenseDetector, class_ids: Sequence[int], objects: Sequence, *,
                  depth_range: tuple[float, float] | None = None,
                  score_threshold: float = SCORE_THRESHOLD,
                  templates_threshold: float | None = TEMPLATES_SCORE_THRESHOLD,
                  max_detections: int = 100, settings: ShapeSearchSettings | None = None,
-                 cache_dir: str | os.PathLike | None = None):
+                 cache_dir: str | os.PathLike | None = None,
+                 score_weights: Mapping[int, Sequence[float]] | None = None):
         if not objects:
             raise ValueError("no objects to detect: give at least one mesh")
         class_ids = [int(c) for c in class_ids]
@@ -96,7 +99,7 @@ class CellDetector:
         self.shapes = ShapeSearchDetector(
             objects, depth_range=depth_range, settings=settings, cache_dir=cache_dir,
             score_threshold=np.inf if templates_threshold is None else templates_threshold,
-            max_detections=max_detections)
+            max_detections=max_detections, score_weights=score_weights)
         self.objects = self.shapes.objects
         self.score_threshold = float(score_threshold)
         self.max_detections = int(max_detections)

@@ -99,8 +99,9 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
     p.add_argument("--templates-score", type=pathlib.Path, default=None, metavar="FILE",
                    help="the templates detector's score calibrated on the cell's own parts "
                         "(python -m train.templates_score --cell DATA --out FILE: a logistic "
-                        "model per part, no network); default: the shared score, fitted on "
-                        "cells of other parts")
+                        "model per part, no network), with --detector templates or cell (its "
+                        "templates' poses and detections); default: the shared score, fitted "
+                        "on cells of other parts")
     p.add_argument("--step", type=checkpoint_step, default="best",
                    help="checkpoint: best, latest or a step number")
     p.add_argument("--num-templates", type=int_at_least(1), default=ONBOARD_TEMPLATES,
@@ -187,9 +188,10 @@ def load_models(args, detector: bool = True):
     if kind == "templates" and args.workdir is not None:
         raise ValueError("--workdir is a detector run; --detector templates needs no network: "
                          "drop one of them")
-    if getattr(args, "templates_score", None) is not None and kind != "templates":
-        raise ValueError("--templates-score calibrates the templates detector; 3PT-D scores "
-                         "with its network: drop it or pass --detector templates")
+    if getattr(args, "templates_score", None) is not None and kind == "3pt":
+        raise ValueError("--templates-score calibrates the templates detector (alone or in "
+                         "the cell detector); 3PT-D scores with its network: drop it or pass "
+                         "--detector templates")
     if not detector and refiner is None:
         raise ValueError("no model to load: --refiner none leaves this command nothing to run; "
                          "drop it (the default refiner) or pass --refiner contour|RUN")

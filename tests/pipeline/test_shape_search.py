@@ -617,6 +617,21 @@ def test_a_cells_score_calibration_scores_its_parts(scene, cache, tmp_path):
             assert d.score == pytest.approx(0.77, abs=1e-9)
         else:
             assert np.min(np.abs(shared - d.score)) < 1e-9
+    # The cell detector's templates score the same way with the file (its poses' scores and
+    # its templates' detections): part 1's weights are the file's, part 2's the shared ones.
+    from flax import nnx
+
+    from threept_jax.data import dense_run
+    from threept_jax.models.dense import DenseConfig, DenseDetector
+
+    cfg = DenseConfig(num_classes=2, width=8, depths=(1, 1, 1, 1), neck_width=16,
+                      image_size=(64, 96))
+    _, params, stats = nnx.split(DenseDetector(cfg, rngs=nnx.Rngs(0)), nnx.Param, nnx.BatchStat)
+    dense_run.save(tmp_path / "cell", cfg, [1, 2], params, stats, {"steps": 1})
+    cell = infer.load(tmp_path / "cell", refiner=None, cache_dir=cache, templates_score=path)
+    cell.shape_search = SMALL
+    weights = cell.scene_detector(objects, depth_range=(330.0, 500.0)).shapes.score_weights
+    np.testing.assert_array_equal(weights, [constant, S.SCORE_WEIGHTS])
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"features": ["contour", "bias"], "parts": {"1": [0.0, 1.0]}}))
     with pytest.raises(ValueError, match="fitted on the features"):
