@@ -75,8 +75,8 @@ class CellDetector:
     ``score_threshold``: the network's score a box must exceed; ``templates_threshold``: the
     calibrated score the templates detector's own detections must exceed to join (its default
     threshold: a featureless noisy image scores up to 0.35), None: the network's boxes
-    alone (about 1.5 s an image less on 2 cores). ``max_detections``: per image, after the
-    merge. ``score_weights``: a cell's calibration of the templates' score
+    alone (1.6 s an image on 2 cores, the merged path 3.3 s). ``max_detections``: per image,
+    after the merge. ``score_weights``: a cell's calibration of the templates' score
     (:func:`infer.shape_detect.load_score_weights`), for the poses' scores and the templates'
     detections."""
 
