@@ -61,11 +61,10 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
     assert calls["zero_shot"][:3:2] == (models["detector"], models["refiner"])
     # No training: the templates detector (no workdir) on the adapted setting's own scenes,
     # refined by the contour refiner; calibrated: the same, with the score fitted on the
-    # adapted setting's training scenes (never its test scenes), written where train.adapt
-    # writes its own (the faked adapt wrote none).
+    # adapted setting's training scenes (never its test scenes), written where it reads it.
     data = tmp_path / "out" / "adapted" / "data"
     assert calls["no_training"] == (None, data, "contour", None)
-    score_file = tmp_path / "out" / "adapted" / "templates_score.json"
+    score_file = tmp_path / "out" / "calibrated" / "templates_score.json"
     assert calls["calibrate"] == data / "train"
     assert calls["calibrated"] == (None, data, "contour", score_file)
     assert json.loads(score_file.read_text()) == {"parts": {"1": [0.0] * 9}}
