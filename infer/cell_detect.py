@@ -20,7 +20,7 @@ detector's probability that it is right), which ranks poses: the BOP runner scor
 by it and the 2D rows by ``score``. On the demo's test images, one 10-minute run (docs/training.md,
 "Poses"): BOP 6D AP 0.066 with the box alone fitted and the rows ranked by the network's
 score, 0.271 with its copies and ranked by the pose score, 0.303 with the templates'
-detections joined (the templates detector alone 0.265); 3.3 s an image with the contour
+detections joined (the templates detector alone 0.265); 2.9 s an image with the contour
 refiner, 2 cores.
 """
 
@@ -75,7 +75,7 @@ class CellDetector:
     ``score_threshold``: the network's score a box must exceed; ``templates_threshold``: the
     calibrated score the templates detector's own detections must exceed to join (its default
     threshold: a featureless noisy image scores up to 0.35), None: the network's boxes
-    alone (1.6 s an image on 2 cores, the merged path 3.3 s). ``max_detections``: per image,
+    alone (1.6 s an image on 2 cores, the merged path 2.9 s). ``max_detections``: per image,
     after the merge. ``score_weights``: a cell's calibration of the templates' score
     (:func:`infer.shape_detect.load_score_weights`), for the poses' scores and the templates'
     detections."""

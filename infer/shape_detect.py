@@ -275,14 +275,18 @@ class ShapeSearchDetector:
         xywh = np.concatenate([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]], -1)
         variants = box_variants(xywh, s.box_scales, s.box_shift)  # [n, V, 4]
         v = variants.shape[1]
-        # Twice the templates a proposal keeps (fixed: one compiled fit for every box count).
+        # Twice the templates a proposal keeps.
         k = min(2 * s.per_proposal, s.num_views * s.num_inplane)
         found = []  # (template score, box, pose)
         for o in np.unique(obj):
             if self._empty[o]:
                 continue
             rows = np.flatnonzero(obj == o)
-            padded = np.zeros((most * v, 4), np.float32)
+            # A part's boxes padded to a power of two (at most ``most``): a few compiled fits
+            # per image size, not one of ``most`` boxes for every call (151 against 28 ms a
+            # part for 3 boxes' 15 copies each, 2 cores).
+            slots = min(most, 1 << (len(rows) - 1).bit_length())
+            padded = np.zeros((slots * v, 4), np.float32)
             padded[:, 2:] = 1.0
             padded[:len(rows) * v] = variants[rows].reshape(-1, 4)
             t = self.templates
