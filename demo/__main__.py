@@ -83,19 +83,16 @@ def no_training(adapted_dir: pathlib.Path, out: pathlib.Path) -> dict:
 
 def calibrated(adapted_dir: pathlib.Path, out: pathlib.Path, cache: pathlib.Path) -> dict:
     """The no-training setting with the templates detector's score calibrated on the cell: a
-    logistic model per part fitted on the adapted setting's first training images
-    (``train.templates_score.calibrate_cell``, written to ``out/templates_score.json`` once;
-    no network), detections refined by the contour refiner; ``cache``: the no-training
-    setting's (its contour models and compiled programs)."""
+    logistic model per part fitted on the adapted setting's first training images (the one
+    ``train.adapt`` fitted for the cell detector, ``adapted_dir/templates_score.json``, else
+    fitted here and written there: :func:`train.adapt.calibrate`; no network), detections
+    refined by the contour refiner; ``cache``: the no-training setting's (its contour models
+    and compiled programs)."""
     from infer.shipped import CONTOUR
-    from threept_jax.data.files import atomic_write_json
-    from train import adapt, templates_score
+    from train import adapt
 
-    path = out / "templates_score.json"
-    if not path.exists():  # a killed run leaves no half-written calibration
-        weights = templates_score.calibrate_cell(adapted_dir / "data" / "train", None,
-                                                 cache / "contours")
-        atomic_write_json(path, weights, indent=1)
+    path = adapt.calibrate(adapted_dir / "data" / "train", adapted_dir / adapt.SCORE_FILE,
+                           cache)
     return adapt.test(None, adapted_dir / "data", out, cache, overlays=6,
                       instances=adapt.INSTANCES, refiner=CONTOUR, templates_score=path)
 

@@ -30,11 +30,13 @@ OUTSIDE = {
     "demo": {"threept_jax", "datagen", "train", "infer"},
 }
 #: The orchestrators: the whole adaptation (nothing imports it but the demo and the campaign),
-#: the training campaign, which makes its own data, and the fit of the templates detector's
-#: score (scenes made as the adaptation makes them, candidates from the detector).
+#: the training campaign, which makes its own data, the fit of the templates detector's
+#: score (scenes made as the adaptation makes them, candidates from the detector), and the
+#: candidates and per-part fit of one cell that the last two share.
 EXCEPTIONS = {"train/adapt.py": {"threept_jax", "datagen", "infer"},
               "train/campaign.py": {"threept_jax", "datagen"},
-              "train/templates_score.py": {"threept_jax", "datagen", "infer"}}
+              "train/templates_score.py": {"threept_jax", "datagen", "infer"},
+              "train/cell_score.py": {"threept_jax", "infer"}}
 
 
 def imports(path: pathlib.Path) -> set[str]:

@@ -28,6 +28,11 @@ that with our own data engine, in stages that each resume when the command is ru
    from. ``W`` is then an ordinary run directory (``config.json``, ``checkpoints/``, ``tb/``):
    ``python -m infer images --workdir W`` loads it, and a killed run resumes from its last
    checkpoint.
+   With the cell detector, the templates detector's score is then calibrated on the training
+   scenes (``python -m train.templates_score --cell W/data/train``, :func:`calibrate`: a
+   logistic model per part, about a minute) -> ``W/templates_score.json``: the test scores the
+   cell detector's templates' poses and detections with it (docs/training.md, "Poses"). A cell
+   too small to fit one (too few right and wrong candidates per part) keeps the shared score.
 4. **Refiner training** (``train.trainer_refiner``, only with ``--refiner-minutes`` > 0; the
    default 0 trains none and the contour refiner refines the test): a 3PT-R run of
    ``--refiner-config`` (``train/configs/refiner.py``) from scratch on the same records ->
@@ -78,6 +83,29 @@ NUM_EVALS = 4
 DETECTORS = ("cell", "3pt")
 #: Mean part instances per generated scene (``--instances``).
 INSTANCES = 8
+#: The templates' score calibrated on the training scenes, in the workdir (:func:`calibrate`).
+SCORE_FILE = "templates_score.json"
+
+
+def calibrate(train: pathlib.Path, path: pathlib.Path, cache: pathlib.Path) -> pathlib.Path:
+    """The templates detector's score calibrated on the scenes of ``train`` (a BOP dataset
+    folder, ``train.cell_score.calibrate_cell``) -> ``path``, written once and kept. A
+    cell too small to fit one (too few right and wrong candidates of every part) gets a file
+    without parts, which scores every part with the shared weights, and its reason; one line
+    says so."""
+    from threept_jax.data.files import atomic_write_json
+    from threept_jax.pipeline.shape_search import FEATURES
+    from train import cell_score
+
+    if not path.exists():
+        try:
+            weights = cell_score.calibrate_cell(train, None, cache / "contours")
+        except SystemExit as e:
+            print(f"   no part calibrated ({e}): the templates' shared score is used",
+                  flush=True)
+            weights = {"features": [*FEATURES, "bias"], "parts": {}, "error": str(e)}
+        atomic_write_json(path, weights, indent=1)
+    return path
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -208,6 +236,34 @@ def generate(args, data: pathlib.Path, sets: Sequence[str] = ("train", "val", "t
     for name in sets:
         print(f"   {name}: {data / name}", flush=True)
         G.main(["--out", str(data / name), *runs[name], *common])
+    share_models(data, sets)
+
+
+def share_models(data: pathlib.Path, sets: Sequence[str]) -> None:
+    """Every split of ``data`` lists the parts of all of them: the data engine writes the
+    meshes its scenes show, and a few test scenes may not show every part of the cell, where
+    a user queries them all (a part missing from the images still competes for them). A mesh a
+    split lacks is copied from the first split that has it (its files ``obj_NNNNNN.*`` and its
+    ``models_info.json`` entry)."""
+    import shutil
+
+    from threept_jax.data import bop
+
+    folders = [data / n / "models" for n in sets
+               if (data / n / "models" / "models_info.json").is_file()]
+    infos = {f: bop.load_models_info(f / "models_info.json") for f in folders}
+    first: dict[int, pathlib.Path] = {}
+    for f in folders:
+        for k in infos[f]:
+            first.setdefault(k, f)
+    for f in folders:
+        missing = sorted(set(first) - set(infos[f]))
+        for k in missing:
+            for src in first[k].glob(f"obj_{k:06d}.*"):
+                shutil.copy2(src, f / src.name)
+        if missing:
+            bop.write_models_info(f / "models_info.json", {
+                **infos[f], **{k: infos[first[k]][k] for k in missing}})
 
 
 def pack(data: pathlib.Path, records: pathlib.Path, render_size: int | None) -> None:
@@ -321,18 +377,20 @@ def infer_bop(workdir: pathlib.Path | None, dataset: pathlib.Path, out: pathlib.
               templates_score: pathlib.Path | None = None) -> dict:
     """``python -m infer bop --evaluate`` (``infer.bop_runner.run_bop``, called in this process)
     of the best detector checkpoint of ``workdir`` (None: the training-free templates detector,
-    ``--detector templates``, scored with the cell's calibration ``templates_score`` when
-    given), and of ``refiner`` when given (a run's best checkpoint or ``"contour"``), on
-    ``dataset``'s ``val_pbr`` images, the ``max_detections`` best detections of an image
-    whatever their score; every object of the dataset queried, or ``obj_ids``;
-    ``targets="bop19"``: each image queried with the objects of its BOP19 targets."""
+    ``--detector templates``), its templates scored with the cell's calibration
+    ``templates_score`` when given (the templates or the cell detector), and of ``refiner``
+    when given (a run's best checkpoint or ``"contour"``), on ``dataset``'s ``val_pbr``
+    images, the ``max_detections`` best detections of an image whatever their score; every
+    object of the dataset queried, or ``obj_ids``; ``targets="bop19"``: each image queried
+    with the objects of its BOP19 targets."""
     from infer.bop_runner import run_bop
     from infer.cli import bop_args
 
-    detector = (dict(detector="templates", templates_score=templates_score) if workdir is None
+    detector = (dict(detector="templates") if workdir is None
                 else dict(workdir=pathlib.Path(workdir), step="best", num_templates=512))
     return run_bop(bop_args(
-        dataset, out, **detector, split="val_pbr", targets=targets, evaluate=True,
+        dataset, out, **detector, templates_score=templates_score, split="val_pbr",
+        targets=targets, evaluate=True,
         score_threshold=0.0, max_detections=max_detections, overlays=overlays,
         cache_dir=pathlib.Path(cache), overlay_threshold=overlay_threshold,
         refiner=pathlib.Path("none" if refiner is None else str(refiner)),
@@ -435,8 +493,8 @@ def test(workdir: pathlib.Path | None, data: pathlib.Path, out: pathlib.Path,
          cache: pathlib.Path, overlays: int, instances: int,
          refiner: pathlib.Path | str | None = None,
          templates_score: pathlib.Path | None = None) -> dict:
-    """The best checkpoint of ``workdir`` (None: the training-free templates detector, with the
-    cell's score calibration ``templates_score`` when given) on ``data/val`` (whose best-F1
+    """The best checkpoint of ``workdir`` (None: the training-free templates detector; the
+    templates scored with the cell's calibration ``templates_score`` when given) on ``data/val`` (whose best-F1
     score becomes the overlay threshold; detection alone, no refinement) and on ``data/test``,
     refined by ``refiner`` when given, scenes generated with ``--instances instances``:
     figures, threshold and the overlays' folder."""
@@ -454,7 +512,8 @@ def test(workdir: pathlib.Path | None, data: pathlib.Path, out: pathlib.Path,
 
 
 def inputs_of_test(workdir: pathlib.Path, data: pathlib.Path, refiner: pathlib.Path | str,
-                   args: argparse.Namespace) -> dict:
+                   args: argparse.Namespace, templates_score: pathlib.Path | None = None
+                   ) -> dict:
     """What the test stage's figures depend on: the val and test scenes, the detector's and
     the refiner's best checkpoints, and the options of the test."""
     from threept_jax.data import dense_run
@@ -469,7 +528,8 @@ def inputs_of_test(workdir: pathlib.Path, data: pathlib.Path, refiner: pathlib.P
               for name in ("val", "test")}
     return {"scenes": scenes, "detector_step": detector_step,
             "refiner": str(refiner), "refiner_step": refiner_step, "overlays": args.overlays,
-            "instances": args.instances}
+            "instances": args.instances,
+            "templates_score": None if templates_score is None else str(templates_score)}
 
 
 def tested(report_path: pathlib.Path, inputs: dict) -> dict | None:
@@ -495,7 +555,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     data, records, cache = w / "data", w / "records", w / "cache"
     refiner = w / "refiner" if args.refiner_minutes > 0 else None
     use_refiner = refiner or CONTOUR
-    n = (6 if refiner else 5) - (args.detector == "cell")
+    n = 6 if refiner else 5
     minutes: dict[str, float] = {}
 
     start = stage(f"1/{n} scenes of {' '.join(args.meshes)} -> {data}")
@@ -520,9 +580,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
         trained = cell_detector.train(records, detector, minutes=args.minutes, val=data / "val")
         steps = trained["steps"]
         minutes["training"] = done(start) / 60
+        score_file = w / SCORE_FILE
+        start = stage(f"4/{n} the templates' score calibrated on the training scenes -> "
+                      f"{score_file}")
+        score = calibrate(data / "train", score_file, cache)
+        minutes["calibration"] = done(start) / 60
         budget = plan(args, configs, w) if refiner else {}
     else:
-        detector = w
+        detector, score = w, None
         budgets = ", ".join(f"the {c.model.variant} {name} in {m:g} minutes" for name, c, m in (
             ("detector", configs["detector"], args.minutes),
             ("refiner", configs.get("refiner"), args.refiner_minutes)) if c is not None)
@@ -556,11 +621,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     start = stage(f"{n}/{n} full-image test on new scenes -> {w / 'test'}"
                    + f", refined by {use_refiner}")
-    inputs = inputs_of_test(detector, data, use_refiner, args)
+    inputs = inputs_of_test(detector, data, use_refiner, args, score)
     report = tested(w / "report.json", inputs)
     if report is None:
         report = test(detector, data, w, cache, args.overlays, args.instances,
-                      refiner=use_refiner)
+                      refiner=use_refiner, templates_score=score)
     minutes["test"] = done(start) / 60
     report.update(steps=steps, detector=args.detector,
                   config="dense" if cell else configs["detector"].model.variant,

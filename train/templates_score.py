@@ -46,7 +46,8 @@ import sys
 from collections.abc import Sequence
 
 import numpy as np
-from tqdm import tqdm
+
+from train.cell_score import CELL_IMAGES, calibrate_cell, collect
 
 #: The calibration cells' meshes and seeds (none of them the evaluations').
 SHARED = pathlib.Path(__file__).resolve().parents[2] / "shared" / "meshes" / "bop"
@@ -80,91 +81,6 @@ def generate(workdir: pathlib.Path) -> list[tuple[pathlib.Path, bool]]:
                 "--resolution", "640", "480", "--spp", "8", "--split", "val",
                 "--val-fraction", "0", "--quiet"])
     return out + [(folder, True)]
-
-
-def collect(data: pathlib.Path, per_image: bool, cache: pathlib.Path, name: str,
-            split_name: str = "val_pbr", max_images: int | None = None):
-    """Features [P, F], rightness [P] and parts (obj_id) [P] of every verified candidate of
-    every image (the first ``max_images``) of the dataset's ``split_name``."""
-    from infer.refine import refine_objects
-    from infer.shape_detect import ShapeSearchDetector
-    from threept_jax.data import bop
-    from threept_jax.pipeline.shape_search import right_candidates
-
-    dataset = bop.BopDataset(data)
-    split = dataset.split(split_name)
-    cell = bop.load_cell(data)
-    depth = None if cell is None else tuple(cell["depth_range_mm"])
-    objects = refine_objects({k: m.path for k, m in dataset.models().items()})
-    by_id = {o.obj_id: o for o in objects}
-    detectors = {}
-
-    def detector(ids):
-        if ids not in detectors:
-            detectors[ids] = ShapeSearchDetector([by_id[i] for i in ids], depth_range=depth,
-                                                 cache_dir=cache)
-        return detectors[ids]
-
-    feats, right, parts = [], [], []
-    keys = [(s, im) for s in split.scene_ids for im in split.scene(s).image_ids][:max_images]
-    for s, im in tqdm(keys, desc=name, leave=False):
-        scene = split.scene(s)
-        gt_ids = np.array([g.obj_id for g in scene.gt[im]])
-        gt_box = np.array([[b[0], b[1], b[0] + b[2], b[1] + b[3]]
-                           for b in (i.bbox_obj for i in scene.gt_info[im])], np.float64)
-        det = detector(tuple(sorted(set(gt_ids.tolist())) if per_image else sorted(by_id)))
-        c = det.candidates(scene.image(im), scene.cameras[im].K)
-        if c is None:
-            continue
-        ids = np.array([o.obj_id for o in det.objects])[c.obj]
-        feats.append(c.features)
-        right.append(right_candidates(c.xyxy, ids, gt_box, gt_ids).any(1))
-        parts.append(ids)
-    if not feats:
-        sys.exit(f"{data}: no image gave a candidate (no proposal or no part outline): check "
-                 f"its images and meshes, or delete the folder to make it again")
-    return np.concatenate(feats), np.concatenate(right), np.concatenate(parts)
-
-
-#: Images a cell's calibration reads by default: on the demo's cell its first 30 training
-#: images gave the held-out AP50 of all 60 (0.368 / 0.286 / 0.334 against 0.369 / 0.284 /
-#: 0.343) in half the time.
-CELL_IMAGES = 30
-
-
-def calibrate_cell(data: pathlib.Path, split_name: str | None, cache: pathlib.Path,
-                   max_images: int = CELL_IMAGES) -> dict:
-    """The per-part weights of one cell's dataset (module docstring), fitted on its first
-    ``max_images`` images, and its figures."""
-    from threept_jax.data import bop
-    from threept_jax.pipeline.shape_search import FEATURES, MIN_PER_PART, fit_part_weights
-
-    if not (data / "models").is_dir():
-        sys.exit(f"{data} is not a BOP dataset (no models/): pass the folder that holds "
-                 f"models/ and the split, e.g. a train.adapt run's WORKDIR/data/train")
-    splits = [p.name for p in sorted(data.iterdir()) if p.is_dir() and p.name != "models"]
-    if split_name is None:
-        if len(splits) != 1:
-            sys.exit(f"{data} holds the splits {splits}: name one with --split")
-        split_name = splits[0]
-    elif split_name not in splits:
-        sys.exit(f"{data} has no split {split_name!r} (it has {splits})")
-    if not bop.BopDataset(data).split(split_name).scene_ids:
-        sys.exit(f"{data}/{split_name} has no scenes")
-    f, r, parts = collect(data, False, cache, str(data.name), split_name, max_images)
-    weights = fit_part_weights(f, r, parts)
-    counts = {int(p): {"candidates": int((parts == p).sum()), "right": int(r[parts == p].sum())}
-              for p in np.unique(parts)}
-    for p, n in counts.items():
-        kept = "its own weights" if p in weights else (
-            f"the shared weights (fewer than {MIN_PER_PART} right or wrong)")
-        print(f"part {p}: {n['candidates']} candidates, {n['right']} right -> {kept}")
-    if not weights:
-        sys.exit(f"{data}: no part had {MIN_PER_PART} right and {MIN_PER_PART} wrong "
-                 f"candidates to fit: give more images of the cell (train.adapt "
-                 f"--train-scenes)")
-    return {"features": [*FEATURES, "bias"], "data": str(data), "split": split_name,
-            "parts": {str(p): w.tolist() for p, w in weights.items()}, "counts": counts}
 
 
 def main(argv: Sequence[str] | None = None) -> dict:

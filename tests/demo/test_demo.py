@@ -48,9 +48,9 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
         calls["calibrate"] = data
         return {"parts": {"1": [0.0] * 9}}
 
-    from train import templates_score
+    from train import cell_score
 
-    monkeypatch.setattr(templates_score, "calibrate_cell", fake_calibrate)
+    monkeypatch.setattr(cell_score, "calibrate_cell", fake_calibrate)
     report = demo.main(["--out", str(tmp_path / "out")])
 
     argv = calls["adapt"]
@@ -61,10 +61,11 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
     assert calls["zero_shot"][:3:2] == (models["detector"], models["refiner"])
     # No training: the templates detector (no workdir) on the adapted setting's own scenes,
     # refined by the contour refiner; calibrated: the same, with the score fitted on the
-    # adapted setting's training scenes (never its test scenes), written where it reads it.
+    # adapted setting's training scenes (never its test scenes), written where train.adapt
+    # writes its own (the faked adapt wrote none).
     data = tmp_path / "out" / "adapted" / "data"
     assert calls["no_training"] == (None, data, "contour", None)
-    score_file = tmp_path / "out" / "calibrated" / "templates_score.json"
+    score_file = tmp_path / "out" / "adapted" / "templates_score.json"
     assert calls["calibrate"] == data / "train"
     assert calls["calibrated"] == (None, data, "contour", score_file)
     assert json.loads(score_file.read_text()) == {"parts": {"1": [0.0] * 9}}
@@ -96,9 +97,9 @@ def test_without_a_trained_refiner_the_contour_refiner_refines(tmp_path, monkeyp
         return {"test": _figures(0.05, refined=refiner is not None), "overlays": "o"}
 
     monkeypatch.setattr(adapt, "test", fake_test)
-    from train import templates_score
+    from train import cell_score
 
-    monkeypatch.setattr(templates_score, "calibrate_cell", lambda *a: {"parts": {}})
+    monkeypatch.setattr(cell_score, "calibrate_cell", lambda *a: {"parts": {}})
     demo.main(["--out", str(tmp_path)])
     assert seen == ["contour"] * 3  # no training, calibrated, then zero-shot
     out = capsys.readouterr().out.split("done in")[1]

@@ -303,7 +303,8 @@ def test_adapt_trains_tests_and_resumes_without_redoing_work(tmp_path, monkeypat
     assert saved["test_inputs"] == {"scenes": {k: scenes[k] for k in ("val", "test")},
                                     "detector_step": run.best_step(), "refiner":
                                     saved["refiner"], "refiner_step": held["step"]
-                                    if helps else None, "overlays": 1, "instances": 3}
+                                    if helps else None, "overlays": 1, "instances": 3,
+                                    "templates_score": None}  # 3PT-D: no templates
 
 
 def test_a_report_is_reused_only_for_the_checkpoints_and_options_it_tested(tmp_path):
@@ -364,14 +365,23 @@ def test_adapt_trains_the_cell_detector_by_default_and_tests_it(tmp_path, monkey
     monkeypatch.setattr(cell_detector, "train", functools.partial(
         cell_detector.train, batch_size=2, width=8, depths=(1, 1, 1, 1), neck_width=16,
         image_size=(64, 96)))
+    import infer.shape_detect
+
     small = ShapeSearchSettings(num_views=40, num_inplane=12, max_proposals=50, candidates=32)
     monkeypatch.setattr(api, "ShapeSearchSettings", lambda: small)
+    monkeypatch.setattr(infer.shape_detect, "ShapeSearchSettings", lambda: small)  # calibration
     w = tmp_path / "w"
     argv = ["--meshes", "procedural:2", "--seed", "3", "--workdir", str(w), "--minutes", "0.01",
             "--train-scenes", "3", "--test-scenes", "1", "--resolution", "96", "80", "--spp",
             "1", "--instances", "3", "--overlays", "1"]
     report = adapt.main(argv)
     assert not (w / "records" / "banks").exists()  # the cell detector reads no bank
+    # The test queries both parts, whether its one scene shows both or not.
+    from threept_jax.data import bop
+
+    for name in ("train", "val", "test"):
+        assert sorted(bop.load_models_info(w / "data" / name / "models" / "models_info.json")
+                      ) == [1, 2], name
     net, class_ids, info = dense_run.load(w / "cell")
     assert class_ids == [1, 2] and info["steps"] >= 21  # the plan comes after 20 timed steps
     assert [p["step"] for p in info["curve"]][-1] == info["steps"] and "val" in info["curve"][0]
@@ -382,8 +392,52 @@ def test_adapt_trains_the_cell_detector_by_default_and_tests_it(tmp_path, monkey
     assert report["test_inputs"]["detector_step"] == info["steps"]
     overlays = sorted((w / "test" / "overlays").glob("*.png"))
     assert len(overlays) == 1 and cv2.imread(str(overlays[0])).shape[1] >= 640
-    # Again: the finished training and the test are found done.
-    results, run = _mtimes(w / "test"), _mtimes(w / "cell")
+    # The templates' score calibrated on the training scenes: this toy cell (3 images) has too
+    # few right and wrong candidates of either part to fit one (train.templates_score's
+    # minimum), so the file holds no part (the shared score) and why; the test used it.
+    score = w / adapt.SCORE_FILE
+    calibration = json.loads(score.read_text())
+    assert calibration["parts"] == {} and "no part had" in calibration["error"]
+    assert report["test_inputs"]["templates_score"] == str(score)
+    # Again: the finished training, the calibration and the test are found done.
+    results, run, fitted = _mtimes(w / "test"), _mtimes(w / "cell"), score.stat().st_mtime
     again = adapt.main(argv)
     assert _mtimes(w / "test") == results and _mtimes(w / "cell") == run
-    assert again["test"] == report["test"]
+    assert score.stat().st_mtime == fitted and again["test"] == report["test"]
+
+
+def test_every_split_lists_the_parts_of_all_of_them(tmp_path):
+    """share_models: a part that only another split's scenes show is copied into each split
+    that lacks it (its files byte for byte, its models_info entry); a split without models
+    (not generated) is left alone; run again, nothing changes."""
+    from threept_jax.data import bop
+
+    def info(k):
+        return {"diameter": 10.0 * k, "min_x": -k, "min_y": -k, "min_z": -k, "size_x": 2 * k,
+                "size_y": 2 * k, "size_z": 2 * k}
+
+    splits = {"train": (1, 2), "val": (1, 3), "test": (1,)}
+    for name, ids in splits.items():
+        models = tmp_path / name / "models"
+        models.mkdir(parents=True)
+        (models / "models_info.json").write_text(json.dumps({str(k): info(k) for k in ids}))
+        for k in ids:
+            (models / f"obj_{k:06d}.ply").write_bytes(f"{name} mesh {k}".encode())
+    (tmp_path / "train" / "models" / "obj_000002.png").write_bytes(b"texture 2")
+    adapt.share_models(tmp_path, ("train", "val", "test", "other"))
+    for name in splits:
+        models = tmp_path / name / "models"
+        got = bop.load_models_info(models / "models_info.json")
+        assert sorted(got) == [1, 2, 3], name
+        assert {k: got[k].to_json()["diameter"] for k in got} == {1: 10.0, 2: 20.0, 3: 30.0}
+        own = splits[name]
+        assert (models / "obj_000001.ply").read_bytes() == f"{name} mesh 1".encode()
+        if 2 not in own:  # from train, the first split that has it, with its texture
+            assert (models / "obj_000002.ply").read_bytes() == b"train mesh 2"
+            assert (models / "obj_000002.png").read_bytes() == b"texture 2"
+        if 3 not in own:
+            assert (models / "obj_000003.ply").read_bytes() == b"val mesh 3"
+    assert not (tmp_path / "other").exists()
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    adapt.share_models(tmp_path, ("train", "val", "test"))
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
