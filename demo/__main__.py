@@ -10,9 +10,11 @@ downloaded and nothing from outside the repository:
    detector (``train.cell_detector``: the five parts at every place of full images) is trained
    from scratch for ``--minutes`` (5; ``--detector 3pt``: 3PT-D, a ``--config`` detector from
    scratch or ``--from shipped``), and with ``--refiner-minutes`` (default 0: none) a refiner
-   (3PT-R, ``train/configs/refiner.py:tiny``) on the same records. The detector finds every part in new test
-   scenes, each box is posed by its part's templates fitted inside it (3PT-D: object
-   generation) and the refiner refines it (the trained 3PT-R when its held-out check passes,
+   (3PT-R, ``train/configs/refiner.py:tiny``) on the same records; for the cell detector the
+   templates' score is then calibrated per part on the training images (what setting 3 uses
+   too). The detector finds every part of the cell in new test scenes (also a part the test
+   images do not show), each box is posed by its part's templates fitted inside it (3PT-D:
+   object generation) and the refiner refines it (the trained 3PT-R when its held-out check passes,
    else the training-free contour refiner): box AP50, and BOP 6D AP, AP-mm and segmentation AP
    before refinement and after it.
 2. **No training** (``--detector templates``): the same cell, the same test images, its parts
