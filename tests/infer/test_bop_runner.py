@@ -523,3 +523,27 @@ def test_a_pose_score_ranks_the_6d_row_and_the_box_score_the_2d_row(tmp_path):
     poses, boxes = bop.read_pose_results(csv_path), bop.read_detection_results(json_path)
     assert [(p.obj_id, p.score) for p in poses] == [(7, 0.25), (8, 0.6)]
     assert [(d.obj_id, d.score) for d in boxes] == [(7, 0.9), (8, 0.6)]
+
+
+def test_an_overlay_with_nothing_above_its_threshold_says_so(tmp_path, monkeypatch):
+    """``_draw`` with every instance under the threshold: no box drawn, and the caption gives
+    the threshold and the best score (the string by hand); the file is written."""
+    import types
+
+    import infer.visualize
+    from infer.bop_runner import _draw
+
+    seen = {}
+
+    def draw(image, dets, masks, caption=None, before_masks=()):
+        seen.update(dets=dets, caption=caption)
+        return image
+
+    monkeypatch.setattr(infer.visualize, "draw_detections", draw)
+    instances = [types.SimpleNamespace(obj_id=1, score=0.2),
+                 types.SimpleNamespace(obj_id=2, score=0.05)]
+    rows = [(i, np.eye(4), np.array([0.0, 0.0, 4.0, 4.0]), np.zeros((8, 8), bool))
+            for i in range(2)]
+    _draw(tmp_path / "o" / "x.png", np.zeros((8, 8, 3), np.uint8), rows, instances, 0.5, None)
+    assert seen == {"dets": [], "caption": "0 detections above threshold 0.5 (best score 0.200)"}
+    assert (tmp_path / "o" / "x.png").is_file()
