@@ -100,7 +100,7 @@ def calibrate(train: pathlib.Path, path: pathlib.Path, cache: pathlib.Path) -> p
     if not path.exists():
         try:
             weights = cell_score.calibrate_cell(train, None, cache / "contours")
-        except SystemExit as e:
+        except cell_score.TooFewCandidates as e:
             print(f"   no part calibrated ({e}): the templates' shared score is used",
                   flush=True)
             weights = {"features": [*FEATURES, "bias"], "parts": {}, "error": str(e)}

@@ -18,6 +18,11 @@ import numpy as np
 from tqdm import tqdm
 
 
+class TooFewCandidates(ValueError):
+    """A dataset whose images give too few candidates to fit a score on (the message says
+    what and how to fix it): ``train.adapt`` keeps the shared score, the command exits."""
+
+
 def collect(data: pathlib.Path, per_image: bool, cache: pathlib.Path, name: str,
             split_name: str = "val_pbr", max_images: int | None = None):
     """Features [P, F], rightness [P] and parts (obj_id) [P] of every verified candidate of
@@ -57,8 +62,9 @@ def collect(data: pathlib.Path, per_image: bool, cache: pathlib.Path, name: str,
         right.append(right_candidates(c.xyxy, ids, gt_box, gt_ids).any(1))
         parts.append(ids)
     if not feats:
-        sys.exit(f"{data}: no image gave a candidate (no proposal or no part outline): check "
-                 f"its images and meshes, or delete the folder to make it again")
+        raise TooFewCandidates(f"{data}: no image gave a candidate (no proposal or no part "
+                               f"outline): check its images and meshes, or delete the folder "
+                               f"to make it again")
     return np.concatenate(feats), np.concatenate(right), np.concatenate(parts)
 
 
@@ -71,7 +77,8 @@ CELL_IMAGES = 30
 def calibrate_cell(data: pathlib.Path, split_name: str | None, cache: pathlib.Path,
                    max_images: int = CELL_IMAGES) -> dict:
     """The per-part weights of one cell's dataset (module docstring), fitted on its first
-    ``max_images`` images, and its figures."""
+    ``max_images`` images, and its figures. A dataset that is not one exits naming the fix;
+    one with too few candidates raises :class:`TooFewCandidates`."""
     from threept_jax.data import bop
     from threept_jax.pipeline.shape_search import FEATURES, MIN_PER_PART, fit_part_weights
 
@@ -96,8 +103,8 @@ def calibrate_cell(data: pathlib.Path, split_name: str | None, cache: pathlib.Pa
             f"the shared weights (fewer than {MIN_PER_PART} right or wrong)")
         print(f"part {p}: {n['candidates']} candidates, {n['right']} right -> {kept}")
     if not weights:
-        sys.exit(f"{data}: no part had {MIN_PER_PART} right and {MIN_PER_PART} wrong "
-                 f"candidates to fit: give more images of the cell (train.adapt "
-                 f"--train-scenes)")
+        raise TooFewCandidates(f"{data}: no part had {MIN_PER_PART} right and {MIN_PER_PART} "
+                               f"wrong candidates to fit: give more images of the cell "
+                               f"(train.adapt --train-scenes)")
     return {"features": [*FEATURES, "bias"], "data": str(data), "split": split_name,
             "parts": {str(p): w.tolist() for p, w in weights.items()}, "counts": counts}

@@ -47,7 +47,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from train.cell_score import CELL_IMAGES, calibrate_cell, collect
+from train.cell_score import CELL_IMAGES, TooFewCandidates, calibrate_cell, collect
 
 #: The calibration cells' meshes and seeds (none of them the evaluations').
 SHARED = pathlib.Path(__file__).resolve().parents[2] / "shared" / "meshes" / "bop"
@@ -85,8 +85,6 @@ def generate(workdir: pathlib.Path) -> list[tuple[pathlib.Path, bool]]:
 
 def main(argv: Sequence[str] | None = None) -> dict:
     from infer.api import DEFAULT_CACHE
-    from threept_jax.data.files import atomic_write_json
-    from threept_jax.pipeline.shape_search import FEATURES, fit_score_weights
 
     p = argparse.ArgumentParser(prog="python -m train.templates_score",
                                 description=__doc__.split("\n")[0])
@@ -102,9 +100,20 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p.add_argument("--images", type=int, default=CELL_IMAGES,
                    help="with --cell: the images fitted on (the split's first)")
     args = p.parse_args(argv)
+    if args.cell is not None and args.images < 1:
+        p.error("--images must be at least 1")
+    try:
+        return fit(args)
+    except TooFewCandidates as e:
+        sys.exit(str(e))
+
+
+def fit(args: argparse.Namespace) -> dict:
+    """The command's work on its parsed arguments (:func:`main`)."""
+    from threept_jax.data.files import atomic_write_json
+    from threept_jax.pipeline.shape_search import FEATURES, fit_score_weights
+
     if args.cell is not None:
-        if args.images < 1:
-            p.error("--images must be at least 1")
         result = calibrate_cell(args.cell, args.split, args.cache_dir / "contours", args.images)
         if args.out:
             atomic_write_json(args.out, result, indent=1)

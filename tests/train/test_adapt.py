@@ -441,3 +441,21 @@ def test_every_split_lists_the_parts_of_all_of_them(tmp_path):
     before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     adapt.share_models(tmp_path, ("train", "val", "test"))
     assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+
+
+def test_calibration_keeps_the_shared_score_only_for_a_cell_too_small(tmp_path, monkeypatch):
+    """adapt.calibrate: too few candidates -> a file without parts, with the reason; a folder
+    that is not a dataset is an error, not a silent fallback, and writes no file."""
+    from train import cell_score
+
+    def too_few(*a):
+        raise cell_score.TooFewCandidates("no part had 10 right and 10 wrong candidates")
+
+    monkeypatch.setattr(cell_score, "calibrate_cell", too_few)
+    path = adapt.calibrate(tmp_path / "train", tmp_path / "small.json", tmp_path / "cache")
+    saved = json.loads(path.read_text())
+    assert saved["parts"] == {} and saved["error"].startswith("no part had 10")
+    monkeypatch.undo()
+    with pytest.raises(SystemExit, match="is not a BOP dataset"):
+        adapt.calibrate(tmp_path / "nothing", tmp_path / "bad.json", tmp_path / "cache")
+    assert not (tmp_path / "bad.json").exists()
