@@ -53,12 +53,14 @@ def test_matched_directly_the_features_fill_the_refiners_outputs():
     real = ref["images"][:, None]  # [B=2, V=1, 64, 96, 3]: not square, the crops are
     real = real[:, :, :, :64]
     renders = rng.integers(0, 255, (2, 3, 1, 64, 64, 3)).astype(np.uint8)
-    out = nnx.jit(lambda m, a, b: m(a, b))(XFeatDescriptors(model, output_size=16),
-                                           jnp.asarray(real), jnp.asarray(renders))
+    # One compiled call: the descriptors and, for the reference, the network on one render.
+    out, plain = nnx.jit(lambda m, a, b, r: (m(a, b), m.xfeat(r)["features"]))(
+        XFeatDescriptors(model, output_size=16), jnp.asarray(real), jnp.asarray(renders),
+        jnp.asarray(renders[1, 2]))
     assert out["real_desc"].shape == out["render_desc"].shape == (2, 3, 1, 16, 16, 64)
     assert out["mask_logits"].shape == (2, 3, 1, 16, 16) and out["scores"].shape == (2, 3)
     assert not np.any(out["scores"]) and not np.any(out["view_scores"])
-    feats = np.asarray(model(jnp.asarray(renders[1, 2]))["features"])[0]  # [8, 8, 64]
+    feats = np.asarray(plain)[0]  # [8, 8, 64]
     want = cv2.resize(feats, (16, 16), interpolation=cv2.INTER_LINEAR)
     want /= np.linalg.norm(want, axis=-1, keepdims=True)
     np.testing.assert_allclose(np.asarray(out["render_desc"][1, 2, 0]), want, atol=1e-4)
