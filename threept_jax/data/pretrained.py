@@ -9,7 +9,6 @@ truncated, edited or mismatched file is refused with the command that remakes it
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import pathlib
@@ -18,6 +17,7 @@ import jax
 import numpy as np
 from flax import nnx
 
+from threept_jax.data.run_dir import sha256
 from threept_jax.models.xfeat import XFeat
 
 #: What remakes the XFeat folder (scripts/convert_xfeat.py's docstring).
@@ -66,11 +66,10 @@ def load_xfeat(folder: str | os.PathLike) -> XFeat:
     try:
         source = json.loads((folder / "SOURCE.json").read_text())
         path = folder / source["arrays"]
-        data = path.read_bytes()
+        digest = sha256(path)
     except (OSError, ValueError, KeyError) as e:
         raise FileNotFoundError(f"{folder} is not a converted XFeat folder ({e}): remake it: "
                                 f"{XFEAT_REMAKE}") from None
-    digest = hashlib.sha256(data).hexdigest()
     if digest != source.get("arrays_sha256"):
         raise ValueError(f"{path} has SHA256 {digest}, SOURCE.json says "
                          f"{source.get('arrays_sha256')}: the file changed since it was "

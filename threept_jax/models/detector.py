@@ -41,15 +41,16 @@ from flax import nnx
 
 from threept_jax.geometry.boxes import cxcywh_to_xyxy
 from threept_jax.models.configs import DetectorConfig
-from threept_jax.models.heads import AttentionPool, PredictorMLP, decode_boxes, logit
+from threept_jax.models.heads import (
+    AttentionPool,
+    PredictorMLP,
+    decode_boxes,
+    logit,
+    unit_vectors,
+)
 from threept_jax.models.vit import ViT
 
 Array = jax.Array
-
-
-def _normalize(x: Array, eps: float = 1e-6) -> Array:
-    x = x.astype(jnp.float32)
-    return x / jnp.maximum(jnp.linalg.norm(x, axis=-1, keepdims=True), eps)
 
 
 def orientation_scores(embeddings: Array, template_bank: Array) -> Array:
@@ -58,7 +59,7 @@ def orientation_scores(embeddings: Array, template_bank: Array) -> Array:
     Embeddings are re-normalised (cheap); the template bank must already hold unit vectors,
     as ``Detector.embed_templates`` returns them. One einsum over E.
     """
-    e = _normalize(embeddings)
+    e = unit_vectors(embeddings)
     bank = jnp.asarray(template_bank, jnp.float32)
     if bank.ndim == 2:
         return jnp.einsum("bpe,te->bpt", e, bank)
@@ -180,7 +181,7 @@ class Detector(nnx.Module):
 
     def _template_embeddings(self, renders: Array) -> Array:
         tokens = self.object_tower(renders)["patch_tokens"]
-        return _normalize(self.template_proj(self.template_pool(tokens)[:, 0]))
+        return unit_vectors(self.template_proj(self.template_pool(tokens)[:, 0]))
 
     def embed_templates(self, template_renders: Array, chunk_size: int | None = None) -> Array:
         """Template renders [O, T, h, w, 3] -> unit template bank [O, T, E] (float32).
@@ -237,7 +238,7 @@ class Detector(nnx.Module):
         return {
             "boxes": boxes,
             "presence_logits": self.presence_head(x)[..., 0],
-            "embeddings": _normalize(self.embed_head(x)),
+            "embeddings": unit_vectors(self.embed_head(x)),
         }
 
     def orientation_logits(self, embeddings: Array, template_bank: Array) -> Array:

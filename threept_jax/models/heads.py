@@ -1,4 +1,5 @@
-"""Small heads of 3PT-D: attention pooling, prediction MLPs and the OWL-ViT box grid prior.
+"""Small heads of 3PT-D (attention pooling, prediction MLPs, the OWL-ViT box grid prior) and
+what the networks share: ``unit_vectors``, the one normalisation of descriptors and embeddings.
 
 The box head follows OWL-ViT (Minderer et al., ECCV 2022; scenic ``owl_vit/models.py``
 ``box_predictor`` and ``utils.compute_box_bias``): each patch token predicts a box as
@@ -24,6 +25,14 @@ from flax import nnx
 from threept_jax.models.vit import Attention, LayerNorm, Mlp
 
 Array = jax.Array
+
+
+def unit_vectors(x: Array, eps: float = 1e-6) -> Array:
+    """x / max(|x|, eps) along the last axis, float32: descriptors and embeddings. Through the
+    squared norm (rsqrt), so the gradient stays finite at x = 0 (``jnp.linalg.norm``'s is NaN
+    there, and a zero vector occurs: zero features under a zero-initialised head bias)."""
+    x = x.astype(jnp.float32)
+    return x * jax.lax.rsqrt(jnp.maximum(jnp.sum(x * x, axis=-1, keepdims=True), eps * eps))
 
 
 def logit(p: float) -> float:

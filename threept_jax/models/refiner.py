@@ -47,6 +47,7 @@ from flax import nnx
 
 from threept_jax.models.configs import RefinerConfig, get_refiner_config
 from threept_jax.models.dpt import DPT, resize
+from threept_jax.models.heads import unit_vectors
 from threept_jax.models.vit import (
     CrossAttentionBlock,
     EncoderBlock,
@@ -65,14 +66,6 @@ def _unit_range(images: Array) -> Array:
     if images.dtype == jnp.uint8:
         return images.astype(jnp.float32) / 255.0
     return images.astype(jnp.float32)
-
-
-def _normalize(x: Array, eps: float = 1e-6) -> Array:
-    """x / max(|x|, eps) along the last axis, float32. Through the squared norm (rsqrt), so
-    the gradient stays finite at x = 0 (``jnp.linalg.norm``'s is NaN there, and a zero
-    descriptor occurs: zero features under a zero-initialised head bias)."""
-    x = x.astype(jnp.float32)
-    return x * jax.lax.rsqrt(jnp.maximum(jnp.sum(x * x, axis=-1, keepdims=True), eps * eps))
 
 
 class Refiner(nnx.Module):
@@ -177,7 +170,7 @@ class Refiner(nnx.Module):
             pix = self._pixel_features(images)  # real crops, then renders
             pix = jnp.concatenate([per_pair(pix[:n_real]), pix[n_real:]])
             feats = jax.nn.relu(self.pixel_join(jnp.concatenate([feats, pix], -1)))
-        desc = _normalize(self.desc_head(feats)).reshape(2, b, k, v, h, h, cfg.descriptor_dim)
+        desc = unit_vectors(self.desc_head(feats)).reshape(2, b, k, v, h, h, cfg.descriptor_dim)
         mask_logits = self.mask_head(feats[:n_pair]).astype(jnp.float32).reshape(b, k, v, h, h)
         return {
             "real_desc": desc[0],

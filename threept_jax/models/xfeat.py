@@ -31,6 +31,9 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
+from threept_jax.models.dpt import resize
+from threept_jax.models.heads import unit_vectors
+
 Array = jax.Array
 
 #: Stride of the outputs.
@@ -74,10 +77,6 @@ def cells(x: Array, size: int = STRIDE) -> Array:
     return x.transpose(0, 1, 3, 5, 2, 4).reshape(b, h // size, w // size, c * size * size)
 
 
-def _resize(x: Array, hw: tuple[int, int]) -> Array:
-    return jax.image.resize(x, (x.shape[0], *hw, x.shape[-1]), "bilinear")
-
-
 class XFeat(nnx.Module):
     """``__call__(images [B, H, W, C]) -> {"features": [B, H/8, W/8, 64], "keypoints": [B, H/8,
     W/8, 65], "heatmap": [B, H/8, W/8, 1]}`` (float32). Images of any scale (grey or colour,
@@ -116,7 +115,7 @@ class XFeat(nnx.Module):
         x4 = self.block4(x3)
         x5 = self.block5(x4)
         hw = x3.shape[1:3]
-        features = self.block_fusion(x3 + _resize(x4, hw) + _resize(x5, hw))
+        features = self.block_fusion(x3 + resize(x4, hw) + resize(x5, hw))
         return {"features": features,
                 "keypoints": self.keypoint_head(cells(x)),
                 "heatmap": jax.nn.sigmoid(self.heatmap_head(features))}
@@ -142,8 +141,7 @@ class XFeatDescriptors(nnx.Module):
         k, h = renders.shape[1], self.output_size
         images = jnp.concatenate([jnp.asarray(real, jnp.float32).reshape(b * v, s, s, 3),
                                   jnp.asarray(renders, jnp.float32).reshape(b * k * v, s, s, 3)])
-        f = _resize(self.xfeat(images)["features"], (h, h))
-        f = f / jnp.maximum(jnp.linalg.norm(f, axis=-1, keepdims=True), 1e-6)
+        f = unit_vectors(resize(self.xfeat(images)["features"], (h, h)))
         real_desc = jnp.broadcast_to(f[:b * v].reshape(b, 1, v, h, h, -1),
                                      (b, k, v, h, h, f.shape[-1]))
         return {"real_desc": real_desc,
