@@ -247,10 +247,11 @@ def summarize(r: Mapping[str, np.ndarray], *, num_steps: int,
     return out
 
 
-def evaluate_run(workdir, *, step="best", data_dir=None, num_examples: int | None = None,
-                 subpixel: bool | None = None, untrained: bool = False) -> dict:
+def evaluate_run(workdir, *, step="best", data_dir=None, split: str | None = None,
+                 num_examples: int | None = None, subpixel: bool | None = None,
+                 untrained: bool = False) -> dict:
     """The held-out metrics (module docstring) of a refiner run's checkpoint ``step`` (or of the
-    untrained network of its config): the run's ``eval`` settings, ``data_dir`` /
+    untrained network of its config): the run's ``eval`` settings, ``data_dir`` / ``split`` /
     ``num_examples`` / ``subpixel`` overriding them when given. Adds ``step``."""
     from threept_jax.data.run_dir import RunDir
     from threept_jax.models.refiner import Refiner
@@ -264,6 +265,8 @@ def evaluate_run(workdir, *, step="best", data_dir=None, num_examples: int | Non
     config.update_from_flattened_dict(flatten_config(run.read_config()))
     if data_dir:
         config.eval.data_dir = str(data_dir)
+    if split:
+        config.eval.split = str(split)
     if num_examples:
         config.eval.num_examples = int(num_examples)
     if subpixel is not None:
@@ -283,8 +286,9 @@ def evaluate_run(workdir, *, step="best", data_dir=None, num_examples: int | Non
 
 def main(argv=None) -> int:
     """``python -m train.eval_refiner --workdir RUN [--step best|latest|N] [--data-dir D]
-    [--num-examples N] [--subpixel on|off] [--untrained]``: the held-out evaluation of a refiner
-    run's checkpoint (or of the untrained network of its config) as JSON on stdout."""
+    [--split train|val] [--num-examples N] [--subpixel on|off] [--untrained]``: the held-out
+    evaluation of a refiner run's checkpoint (or of the untrained network of its config) as
+    JSON on stdout."""
     import argparse
     import sys
 
@@ -293,6 +297,8 @@ def main(argv=None) -> int:
     p.add_argument("--step", default="best")
     p.add_argument("--data-dir", default=None, help="records of held-out objects (default: the "
                    "run's eval.data_dir, else its data_dir's val split)")
+    p.add_argument("--split", choices=("train", "val"), default=None,
+                   help="the split of the evaluation's records (default: the run's eval.split)")
     p.add_argument("--num-examples", type=int, default=None)
     p.add_argument("--subpixel", choices=("on", "off"), default=None,
                    help="override the run's refine.subpixel")
@@ -300,7 +306,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     try:
         out = evaluate_run(args.workdir, step=args.step, data_dir=args.data_dir,
-                           num_examples=args.num_examples,
+                           split=args.split, num_examples=args.num_examples,
                            subpixel=None if args.subpixel is None else args.subpixel == "on",
                            untrained=args.untrained)
     except FileNotFoundError as e:

@@ -92,7 +92,10 @@ class InputConfig:
 @dataclasses.dataclass(frozen=True)
 class OptimConfig:
     """AdamW with linear warmup and cosine decay to ``learning_rate * end_lr_factor``; weight
-    decay on matrices only (ndim >= 2), not biases, norms or scalars."""
+    decay on matrices only (ndim >= 2), not biases, norms or scalars. ``freeze``: top-level
+    parameter groups held at their initial values (comma-separated, e.g. ``"stem"``, the
+    refiner's pretrained stem): no gradient reaches them and no weight decay; to fine-tune
+    them afterwards, start a run with ``init_from`` the frozen one and ``freeze=""``."""
 
     learning_rate: float = 1e-3
     warmup_steps: int = 50
@@ -102,6 +105,7 @@ class OptimConfig:
     eps: float = 1e-8
     weight_decay: float = 0.05
     grad_clip_norm: float = 1.0
+    freeze: str = ""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import math
 import pathlib
 import time
@@ -57,6 +58,7 @@ def make_optimizer(optim: Mapping[str, Any], total_steps: int
     ``optim``: fields of :class:`train.run_config.OptimConfig` (``config.optim``).
     """
     o = OptimConfig(**dict(optim))
+    frozen = frozen_groups(o.freeze)
     warmup = int(min(o.warmup_steps, max(total_steps - 1, 0)))
     schedule = optax.warmup_cosine_decay_schedule(
         init_value=0.0, peak_value=o.learning_rate, warmup_steps=warmup,
@@ -64,9 +66,30 @@ def make_optimizer(optim: Mapping[str, Any], total_steps: int
     tx = optax.chain(
         optax.clip_by_global_norm(o.grad_clip_norm),
         optax.adamw(schedule, b1=o.b1, b2=o.b2, eps=o.eps, weight_decay=o.weight_decay,
-                    mask=lambda p: jax.tree.map(lambda x: x.ndim >= 2, p)),
+                    mask=functools.partial(decay_mask, frozen=frozen)),
     )
     return tx, schedule
+
+
+def decay_mask(params: Mapping[str, Any], frozen: frozenset[str] = frozenset()) -> dict:
+    """Weight decay on matrices (ndim >= 2) outside the ``frozen`` groups."""
+    return {k: jax.tree.map(lambda x, held=k in frozen: x.ndim >= 2 and not held, v)
+            for k, v in params.items()}
+
+
+def frozen_groups(freeze: str) -> frozenset[str]:
+    """``OptimConfig.freeze`` (``"stem"``, ``"stem,encoder"``) as a set of top-level names."""
+    return frozenset(k.strip() for k in str(freeze).split(",") if k.strip())
+
+
+def hold_frozen(params: Mapping[str, Any], frozen: frozenset[str]) -> dict[str, Any]:
+    """``params`` with the ``frozen`` groups behind ``jax.lax.stop_gradient`` (their gradient
+    is zero, and XLA drops the backward pass through them); an unknown name is a ValueError."""
+    unknown = sorted(frozen - set(params))
+    if unknown:
+        raise ValueError(f"optim.freeze names {unknown}, which the model does not have; its "
+                         f"parameter groups: {sorted(params)}")
+    return {k: jax.lax.stop_gradient(v) if k in frozen else v for k, v in params.items()}
 
 
 def apply_gradients(state: Mapping[str, Any], grads: Any, metrics: Mapping[str, jax.Array],
@@ -251,6 +274,8 @@ class Trainer:
             self.state = self.compiled.init()
             if config.init_from:
                 self.state["params"] = self._params_from(config.init_from)
+            else:
+                self.state["params"] = self.pretrained_params(self.state["params"])
             self.start_step = 0
         else:
             target = abstract_with_shardings(self.compiled.abstract_state,
@@ -279,6 +304,11 @@ class Trainer:
     def make_evaluator(self) -> Callable[[Any], dict[str, float]]:
         """``evaluator(params) -> {"eval/...": float}``, built at the first evaluation."""
         raise NotImplementedError
+
+    def pretrained_params(self, params: Any) -> Any:
+        """A fresh run's initial parameters with any pretrained part loaded (a stem); by
+        default ``params`` as initialised."""
+        return params
 
     # -- shared ---------------------------------------------------------------------------
 

@@ -25,7 +25,8 @@ iterator, resume, preemption, finiteness checks, TensorBoard, progress bar) is
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
+from typing import Any
 
 import grain
 import jax
@@ -33,6 +34,7 @@ import ml_collections
 import optax
 from flax import nnx
 
+from threept_jax.data.pretrained import stem_params
 from threept_jax.data.refiner_input import RefinerMeshes, refiner_dataset
 from threept_jax.losses.refiner import RefinerLossConfig
 from threept_jax.models.configs import RefinerConfig
@@ -40,7 +42,13 @@ from threept_jax.models.refiner import Refiner
 from threept_jax.pipeline.refinement import RefineSettings
 from train.eval_refiner import RefinerEvaluator
 from train.refiner_objective import STEP_FIELDS, RefinerAssets, objective, render_batch
-from train.run_config import loss_config, model_config, refine_settings, refiner_example_config
+from train.run_config import (
+    OptimConfig,
+    loss_config,
+    model_config,
+    refine_settings,
+    refiner_example_config,
+)
 from train.trainer import (
     CompiledStep,
     Hook,
@@ -48,6 +56,8 @@ from train.trainer import (
     Trainer,
     apply_gradients,
     compile_step,
+    frozen_groups,
+    hold_frozen,
     make_optimizer,
 )
 
@@ -55,16 +65,20 @@ from train.trainer import (
 def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
                     schedule: optax.Schedule, model_cfg: RefinerConfig,
                     loss_cfg: RefinerLossConfig, settings: RefineSettings,
-                    trace_counter: list[int] | None = None):
+                    trace_counter: list[int] | None = None, optim: Mapping[str, Any] = ()):
     """``train_step(state, batch, assets) -> (state, metrics)``, pure (module docstring).
+
+    ``optim``: ``config.optim``, whose ``freeze`` groups get no gradient (``hold_frozen``).
 
     ``batch`` holds :data:`~train.refiner_objective.STEP_FIELDS` with a leading batch axis;
     ``assets`` is the :class:`~train.refiner_objective.RefinerAssets` of the run's objects.
     ``trace_counter[0]`` counts the traces (tests check that it compiles once).
     """
 
+    frozen = frozen_groups(OptimConfig(**dict(optim)).freeze) if optim else frozenset()
+
     def loss_fn(params, batch, assets):
-        model = nnx.merge(graphdef, params)
+        model = nnx.merge(graphdef, hold_frozen(params, frozen))
         rend = render_batch(assets, batch, crop_size=model_cfg.crop_size,
                             output_size=model_cfg.output_size, ambient=settings.ambient)
         outputs = model(batch["crops"], rend.rgb)
@@ -91,7 +105,7 @@ def build_step(config: ml_collections.ConfigDict, assets: RefinerAssets,
     graphdef = nnx.graphdef(nnx.eval_shape(make_model))
     counter = [0]
     step_fn = make_train_step(graphdef, tx, schedule, model_cfg, loss_config(config),
-                              refine_settings(config), counter)
+                              refine_settings(config), counter, optim=config.optim.to_dict())
     return compile_step(make_model, step_fn, tx, schedule, mesh,
                         int(config.mesh.fsdp_min_size), counter, assets=assets)
 
@@ -128,6 +142,19 @@ class RefinerTrainer(Trainer):
 
     def make_evaluator(self) -> RefinerEvaluator:
         return RefinerEvaluator(self.config, self.compiled.graphdef, self.mesh)
+
+    def pretrained_params(self, params):
+        """A fresh run with ``model.pretrained_stem`` starts from the converted weights
+        (``models/<stem>``, checked against their SHA256)."""
+        stem = self.model_cfg.pretrained_stem
+        if stem == "none":
+            return params
+        loaded = stem_params(stem)
+        params = dict(params)
+        params["stem"] = jax.tree.map(
+            lambda old, new: jax.device_put(new.astype(old.dtype), old.sharding),
+            params["stem"], loaded)
+        return params
 
 
 def train(config: ml_collections.ConfigDict, workdir, hooks: Iterable[Hook] = (),

@@ -94,17 +94,24 @@ def test_real_crops_and_renders_share_one_encoder_and_decoder(model, inputs):
     assert np.abs(np.asarray(out["render_desc"][:, 1] - out["real_desc"][:, 1])).max() > 0.1
 
 
-def test_conditioned_levels_and_pixel_stem_keep_hypotheses_apart_and_streams_siamese(inputs):
+def test_conditioned_levels_and_stems_keep_hypotheses_apart_and_streams_siamese(inputs):
     """The lever options (every DPT level of the real crop read from the cross-attention
-    output, a pixel stem): hypothesis k's outputs still depend on its render alone, and with
-    the cross-attention branches off an identical render still gets the real crop's
-    descriptors exactly."""
-    cfg = get_refiner_config("tiny", conditioned_levels=4, pixel_features=8)
+    output, a pixel stem, XFeat as a pretrained stem): hypothesis k's outputs still depend on
+    its render alone, and with the cross-attention branches off an identical render still gets
+    the real crop's descriptors exactly."""
+    cfg = get_refiner_config("tiny", conditioned_levels=4, pixel_features=8,
+                             pretrained_stem="xfeat")
     model = Refiner(cfg, rngs=nnx.Rngs(0))
+    # The stem's token projection starts at zero (a fresh network starts as one without the
+    # stem); make it read the stem, so that the test covers that path too.
+    kernel = model.stem_tokens.kernel
+    assert not np.any(kernel[...])
+    kernel[...] = jax.random.normal(jax.random.key(0), kernel.shape) * 0.1
     real, renders = inputs
     other = renders.copy()
     other[:, 1] = np.random.default_rng(1).uniform(size=other[:, 1].shape)
-    a, b = model(real, renders), model(real, other)
+    run = nnx.jit(lambda m, r, x: m(r, x))  # one compilation for the three calls
+    a, b = run(model, real, renders), run(model, real, other)
     for key in a:
         np.testing.assert_allclose(np.asarray(b[key])[:, [0, 2]], np.asarray(a[key])[:, [0, 2]],
                                    atol=1e-6, err_msg=key)
@@ -114,12 +121,16 @@ def test_conditioned_levels_and_pixel_stem_keep_hypotheses_apart_and_streams_sia
             ls.gamma[...] = jnp.zeros_like(ls.gamma[...])
     same = renders.copy()
     same[:, 0] = real / 255.0
-    out = model(real, same)
+    out = run(model, real, same)
     np.testing.assert_allclose(out["render_desc"][:, 0], out["real_desc"][:, 0], atol=1e-5)
     with pytest.raises(ValueError, match="conditioned_levels must be 1 to 4"):
         get_refiner_config("tiny", conditioned_levels=5)
     with pytest.raises(ValueError, match="pixel_features must be >= 0"):
         get_refiner_config("tiny", pixel_features=-1)
+    with pytest.raises(ValueError, match="'xfeat' needs a crop_size in multiples of 32.*use 96"):
+        get_refiner_config("tiny", pretrained_stem="xfeat", crop_size=80, variant="tiny/8")
+    with pytest.raises(ValueError, match="pretrained_stem must be one of"):
+        get_refiner_config("tiny", pretrained_stem="dino")
 
 
 def test_input_errors_name_the_expected_shapes(model, inputs):

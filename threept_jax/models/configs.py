@@ -12,6 +12,7 @@ T templates, D width.
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import jax.numpy as jnp
@@ -298,6 +299,10 @@ class DetectorConfig(_VariantSizes):
         return self.num_prior_views * self.tokens_per_view
 
 
+#: RefinerConfig.pretrained_stem values: none, or XFeat's.
+PRETRAINED_STEMS = ("none", "xfeat")
+
+
 @dataclasses.dataclass(frozen=True)
 class RefinerConfig(_VariantSizes):
     """3PT-R, the render-and-compare refiner network (docs/design.md section 1.3, paper 3.3).
@@ -328,6 +333,13 @@ class RefinerConfig(_VariantSizes):
         the heads: DPT sees the image only through patch tokens, and a small network does not
         learn where inside a patch an edge lies (measured in docs/training.md, "3PT-R:
         matching on unseen parts per CPU minute"). 0: none, the paper's decoder.
+      pretrained_stem: ``"none"``, or ``"xfeat"``: a pretrained XFeat
+        (:mod:`threept_jax.models.xfeat`, BatchNorms folded) reads every crop; its stride-8
+        features enter twice: resized to the patch grid, through a linear layer (zero at
+        initialisation) added to the patch embeddings, and resized to the map, joined to DPT's
+        output before the heads (as the pixel stem's). Crop sizes in multiples of 32. The
+        trainer loads the pretrained weights into a fresh run (``models/xfeat``);
+        ``optim.freeze = "stem"`` holds them fixed.
       attention_impl: ``None``/``"xla"``, or ``"cudnn"`` (flash attention, GPU, bf16/fp16).
       remat: rematerialise each encoder, cross-attention and DPT fusion block (and the DPT
         head) in the backward pass.
@@ -344,6 +356,7 @@ class RefinerConfig(_VariantSizes):
     dpt_features: int = 256
     conditioned_levels: int = 1
     pixel_features: int = 0
+    pretrained_stem: str = "none"
     attention_impl: str | None = None
     remat: bool = False
     dtype: Any = jnp.float32
@@ -359,6 +372,14 @@ class RefinerConfig(_VariantSizes):
         if int(self.pixel_features) < 0:
             raise ValueError(f"RefinerConfig.pixel_features must be >= 0 (0: no pixel stem), "
                              f"got {self.pixel_features}")
+        if self.pretrained_stem not in PRETRAINED_STEMS:
+            raise ValueError(f"RefinerConfig.pretrained_stem must be one of {PRETRAINED_STEMS}, "
+                             f"got {self.pretrained_stem!r}")
+        if self.pretrained_stem == "xfeat" and self.crop_size % 32:
+            m = math.lcm(32, p)  # and of the patch size
+            raise ValueError(f"RefinerConfig.pretrained_stem='xfeat' needs a crop_size in "
+                             f"multiples of 32 (XFeat's coarsest stride), got {self.crop_size}; use "
+                             f"{-(-self.crop_size // m) * m}")
         if self.crop_size % p:
             raise ValueError(
                 f"RefinerConfig.crop_size={self.crop_size} is not a multiple of the patch size "

@@ -29,6 +29,11 @@ view, drawn into the same crops). The network:
    linear layer, is the score logit of that (hypothesis, view); a hypothesis's score is the
    mean over its views.
 
+Two optional stems read the crops themselves (``RefinerConfig``): ``pixel_features``, two
+3 x 3 convolutions joined to DPT's output, and ``pretrained_stem="xfeat"``, XFeat's pretrained
+network (:mod:`threept_jax.models.xfeat`, BatchNorms folded) whose stride-8 features are added
+to the patch embeddings (a linear layer that starts at zero) and joined to DPT's output too.
+
 Every output of hypothesis k is computed from the real crops and the renders of hypothesis k
 alone (no normalisation or attention across hypotheses), so hypotheses are independent by
 construction. Shapes: B instances, K hypotheses, V views, H = W crop side, h = w map side,
@@ -56,6 +61,8 @@ from threept_jax.models.vit import (
     apply_cross_block,
     count_params,
 )
+from threept_jax.models.xfeat import FEATURES as XFEAT_DIM
+from threept_jax.models.xfeat import XFeat
 
 Array = jax.Array
 
@@ -91,15 +98,25 @@ class Refiner(nnx.Module):
         self.dpt = DPT(cfg.width, cfg.dpt_dims, cfg.dpt_features, cfg.output_size,
                        remat=cfg.remat, **kw)
         head_in = cfg.dpt_features // 2
+        conv = dict(kernel_size=(3, 3), padding="SAME", **kw)
         if cfg.pixel_features:
-            # Pixel stem: 3x3 convolutions on the crop itself, joined to DPT's output by a 3x3
-            # convolution over both (configs.RefinerConfig.pixel_features).
-            conv = dict(kernel_size=(3, 3), padding="SAME", **kw)
+            # Pixel stem: 3x3 convolutions on the crop itself (configs.RefinerConfig).
             self.pixel_stem = nnx.List([nnx.Conv(3, cfg.pixel_features, **conv),
                                         nnx.Conv(cfg.pixel_features, cfg.pixel_features, **conv)])
-            self.pixel_join = nnx.Conv(head_in + cfg.pixel_features, head_in, **conv)
         else:
-            self.pixel_stem = self.pixel_join = nnx.data(None)
+            self.pixel_stem = nnx.data(None)
+        if cfg.pretrained_stem == "xfeat":
+            # A pretrained stem (configs.RefinerConfig.stem): its features join the patch
+            # embeddings through a linear layer that starts at zero, so a fresh network
+            # starts as the one without the stem.
+            self.stem = XFeat(folded=True, rngs=rngs)
+            self.stem_tokens = nnx.Linear(XFEAT_DIM, cfg.width, kernel_init=nnx.initializers.zeros,
+                                          **kw)
+        else:
+            self.stem = self.stem_tokens = nnx.data(None)
+        joined = cfg.pixel_features + (XFEAT_DIM if cfg.pretrained_stem == "xfeat" else 0)
+        # What the stems give at the map's resolution joins DPT's output by a 3x3 convolution.
+        self.pixel_join = nnx.Conv(head_in + joined, head_in, **conv) if joined else nnx.data(None)
         self.desc_head = nnx.Conv(head_in, cfg.descriptor_dim, (1, 1), **kw)
         self.mask_head = nnx.Conv(head_in, 1, (1, 1), **kw)
 
@@ -131,7 +148,11 @@ class Refiner(nnx.Module):
         # One encoder call over the real crops (ordered b, v) and the renders (b, k, v).
         images = jnp.concatenate([_unit_range(real).reshape(n_real, s, s, 3),
                                   _unit_range(renders).reshape(n_pair, s, s, 3)])
-        enc = self.encoder(images, layers=cfg.encoder_hooks[:3])
+        stem = None if self.stem is None else self.stem(images)["features"]  # [N, S/8, S/8, 64]
+        offsets = None
+        if stem is not None:
+            offsets = self.stem_tokens(resize(stem, (g, g)).reshape(n_real + n_pair, g * g, -1))
+        enc = self.encoder(images, layers=cfg.encoder_hooks[:3], patch_offsets=offsets)
         tokens = jnp.concatenate([enc["patch_tokens"], enc["register_tokens"]], axis=1)
         num_patches = enc["patch_tokens"].shape[1]
 
@@ -166,8 +187,13 @@ class Refiner(nnx.Module):
             levels.append(jnp.concatenate([real_level,
                                            self.dpt.reassemble(i, render_tokens, g)]))
         feats = self.dpt.fuse(levels)  # [2 * B*K*V, h, h, F/2]
-        if self.pixel_stem is not None:
-            pix = self._pixel_features(images)  # real crops, then renders
+        if self.pixel_join is not None:
+            pix = []  # at the map's resolution, real crops then renders
+            if self.pixel_stem is not None:
+                pix.append(self._pixel_features(images))
+            if stem is not None:
+                pix.append(resize(stem, (h, h)).astype(cfg.dtype))
+            pix = jnp.concatenate(pix, -1)
             pix = jnp.concatenate([per_pair(pix[:n_real]), pix[n_real:]])
             feats = jax.nn.relu(self.pixel_join(jnp.concatenate([feats, pix], -1)))
         desc = unit_vectors(self.desc_head(feats)).reshape(2, b, k, v, h, h, cfg.descriptor_dim)

@@ -285,7 +285,7 @@ class ViT(nnx.Module):
     """ViT encoder with optional extra (prior) tokens and register tokens.
 
     ``__call__(images [B, H, W, 3], extra_tokens [B, E, D] | None, extra_mask [B, E] | None,
-    layers=())`` returns ``{"patch_tokens": [B, P, D], "extra_tokens": [B, E, D],
+    layers=(), patch_offsets [B, P, D] | None)`` returns ``{"patch_tokens": [B, P, D], "extra_tokens": [B, E, D],
     "register_tokens": [B, R, D], "layers": (L x [B, P, D])}`` (the last three only when
     present), all after the final LayerNorm, with P = (H / patch) * (W / patch) in row-major
     order. ``layers`` names blocks (0-based) whose patch-token outputs are returned as well, in
@@ -293,6 +293,7 @@ class ViT(nnx.Module):
     H and W must be multiples of the patch size but need not equal the native ``image_size``:
     the position embedding follows the grid.
     Extra tokens get no position embedding here; the caller adds whatever identifies them.
+    ``patch_offsets`` are added to the patch embeddings (a pretrained stem's features, say).
     """
 
     def __init__(self, cfg: ViTConfig, *, rngs: nnx.Rngs):
@@ -348,14 +349,19 @@ class ViT(nnx.Module):
         return x + self.position_embedding(grid)[None]
 
     def __call__(self, images: Array, extra_tokens: Array | None = None,
-                 extra_mask: Array | None = None, layers: tuple[int, ...] = ()
-                 ) -> dict[str, Array]:
+                 extra_mask: Array | None = None, layers: tuple[int, ...] = (),
+                 patch_offsets: Array | None = None) -> dict[str, Array]:
         cfg = self.cfg
         layers = tuple(int(i) for i in layers)
         if any(not 0 <= i < cfg.depth for i in layers):
             raise ValueError(f"layers {layers} must be block indices in [0, {cfg.depth})")
         x = self.embed_patches(images)
         b, num_patches = x.shape[:2]
+        if patch_offsets is not None:
+            if patch_offsets.shape != x.shape:
+                raise ValueError(f"patch_offsets must be [B, P, D] = {x.shape}, got "
+                                 f"{patch_offsets.shape}")
+            x = x + patch_offsets.astype(cfg.dtype)
         parts, masks = [x], [jnp.ones((b, num_patches), bool)]
         num_extra = 0
         if extra_tokens is not None:

@@ -38,6 +38,8 @@ Array = jax.Array
 
 #: Stride of the outputs.
 STRIDE = 8
+#: Channels of the local features.
+FEATURES = 64
 #: Input sizes must be multiples of this (the coarsest stride of the backbone).
 MULTIPLE = 32
 #: Epsilon of upstream's InstanceNorm2d and BatchNorm2d (PyTorch's default).
@@ -46,18 +48,23 @@ EPS = 1e-5
 
 class BasicLayer(nnx.Module):
     """Convolution (no bias) -> BatchNorm without scale or bias -> ReLU (upstream's
-    ``BasicLayer``)."""
+    ``BasicLayer``); ``folded``: the BatchNorm folded into the convolution, which then has a
+    bias (:func:`fold_batchnorm`)."""
 
     def __init__(self, c_in: int, c_out: int, kernel: int = 3, stride: int = 1,
-                 padding: int = 1, *, rngs: nnx.Rngs):
+                 padding: int = 1, *, folded: bool = False, rngs: nnx.Rngs):
         self.conv = nnx.Conv(c_in, c_out, (kernel, kernel), strides=(stride, stride),
-                             padding=((padding, padding), (padding, padding)), use_bias=False,
+                             padding=((padding, padding), (padding, padding)), use_bias=folded,
                              rngs=rngs)
-        self.norm = nnx.BatchNorm(c_out, use_running_average=True, use_bias=False,
-                                  use_scale=False, epsilon=EPS, momentum=0.9, rngs=rngs)
+        if folded:
+            self.norm = nnx.data(None)
+        else:
+            self.norm = nnx.BatchNorm(c_out, use_running_average=True, use_bias=False,
+                                      use_scale=False, epsilon=EPS, momentum=0.9, rngs=rngs)
 
     def __call__(self, x: Array) -> Array:
-        return jax.nn.relu(self.norm(self.conv(x)))
+        x = self.conv(x)
+        return jax.nn.relu(x if self.norm is None else self.norm(x))
 
 
 def instance_norm(x: Array) -> Array:
@@ -80,14 +87,17 @@ def cells(x: Array, size: int = STRIDE) -> Array:
 class XFeat(nnx.Module):
     """``__call__(images [B, H, W, C]) -> {"features": [B, H/8, W/8, 64], "keypoints": [B, H/8,
     W/8, 65], "heatmap": [B, H/8, W/8, 1]}`` (float32). Images of any scale (grey or colour,
-    averaged to grey and instance-normalised); H and W multiples of 32."""
+    averaged to grey and instance-normalised); H and W multiples of 32. ``folded``: every
+    BatchNorm folded into its convolution (:func:`fold_batchnorm`): parameters only, the form
+    a stem is trained in.
+    """
 
-    def __init__(self, *, rngs: nnx.Rngs):
+    def __init__(self, *, folded: bool = False, rngs: nnx.Rngs):
         def seq(*layers):
             return nnx.Sequential(*layers)
 
         def L(c_in, c_out, stride=1, kernel=3, padding=1):  # noqa: N802 (upstream's name)
-            return BasicLayer(c_in, c_out, kernel, stride, padding, rngs=rngs)
+            return BasicLayer(c_in, c_out, kernel, stride, padding, folded=folded, rngs=rngs)
 
         self.skip1 = nnx.Conv(1, 24, (1, 1), rngs=rngs)  # after a 4 x 4 average pool
         self.block1 = seq(L(1, 4), L(4, 8, 2), L(8, 8), L(8, 24, 2))
@@ -119,6 +129,28 @@ class XFeat(nnx.Module):
         return {"features": features,
                 "keypoints": self.keypoint_head(cells(x)),
                 "heatmap": jax.nn.sigmoid(self.heatmap_head(features))}
+
+
+def _basic_layers(model: XFeat) -> list[BasicLayer]:
+    return [m for _, m in nnx.iter_modules(model) if isinstance(m, BasicLayer)]
+
+
+def fold_batchnorm(model: XFeat) -> XFeat:
+    """``model`` with each BatchNorm's running statistics folded into its convolution: kernel
+    times s and bias -mean s per output channel, s = 1 / sqrt(var + eps) (the norms have no
+    scale or bias). The same function on the pretrained statistics, as plain parameters: what
+    detectron2's FrozenBatchNorm does for fine-tuned backbones, so that a stem in a train state
+    holds parameters only and fine-tuning does not re-estimate statistics on small batches."""
+    folded = XFeat(folded=True, rngs=nnx.Rngs(0))
+    for src, dst in zip(_basic_layers(model), _basic_layers(folded), strict=True):
+        s = jax.lax.rsqrt(src.norm.var[...] + src.norm.epsilon)
+        dst.conv.kernel[...] = src.conv.kernel[...] * s
+        dst.conv.bias[...] = -src.norm.mean[...] * s
+    for name in ("skip1",):
+        nnx.update(getattr(folded, name), nnx.state(getattr(model, name)))
+    for name in ("block_fusion", "heatmap_head", "keypoint_head"):  # their last layer: a Conv
+        nnx.update(getattr(folded, name).layers[-1], nnx.state(getattr(model, name).layers[-1]))
+    return folded
 
 
 class XFeatDescriptors(nnx.Module):
