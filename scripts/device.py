@@ -59,14 +59,18 @@ CALL_LIMIT = 64 * 2**20
 PART_BYTES = 15 * 2**20
 RUN_LIMIT = 4 * PART_BYTES
 #: The refiner trained on the device: the ``cpu`` size (mini/16, 2.3 M parameters) at 128 px
-#: crops, batch 64. Its training state (parameters and Adam's two moments, float32, 28 MB)
+#: crops, batch 64, reading XFeat as a frozen pretrained stem (0.66 M parameters; at 128 px on
+#: CPU it beat the same network without it on both held-out sets, docs/training.md,
+#: "Pretrained stems"). Its training state (parameters and Adam's two moments, float32, 36 MB)
 #: travels both ways; that of ``small`` (S/14, 35.9 M parameters: 430 MB) cannot.
 CONFIG = "cpu"
 CONFIG_OVERRIDES = ("--config.model.crop_size=128", "--config.model.output_size=64",
+                    "--config.model.pretrained_stem=xfeat", "--config.optim.freeze=stem",
                     "--config.batch_size=64")
-#: The dry run's (CPU, tests).
+#: The dry run's (CPU, tests): the device's stem, at the ``tiny`` size.
 DRY_CONFIG = "tiny"
-DRY_OVERRIDES = ("--config.batch_size=2", "--config.mesh.data=1",
+DRY_OVERRIDES = ("--config.model.pretrained_stem=xfeat", "--config.optim.freeze=stem",
+                 "--config.batch_size=2", "--config.mesh.data=1",
                  "--config.data.num_hypotheses=2", "--config.refine.max_faces=256",
                  "--config.refine.num_matches=16", "--config.eval.every_steps=0",
                  "--config.checkpoint.every_steps=1", "--config.log_every=1")
@@ -163,8 +167,9 @@ def state_bytes(config: str = CONFIG, overrides: tuple[str, ...] = CONFIG_OVERRI
     from threept_jax.models.configs import get_refiner_config
     from threept_jax.models.refiner import Refiner
 
-    model = {k.split(".")[-1]: int(v) for k, v in (o.removeprefix("--config.").split("=")
-                                                   for o in overrides) if k.startswith("model.")}
+    model = {k.split(".")[-1]: int(v) if v.isdigit() else v
+             for k, v in (o.removeprefix("--config.").split("=") for o in overrides)
+             if k.startswith("model.")}
     cfg = get_refiner_config(config, dtype="float32", **model)
     shapes = nnx.state(nnx.eval_shape(lambda: Refiner(cfg, rngs=nnx.Rngs(0))), nnx.Param)
     return 3 * 4 * sum(int(np.prod(x.shape)) for x in jax.tree.leaves(shapes))

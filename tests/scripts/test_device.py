@@ -11,13 +11,16 @@ import pathlib
 import subprocess
 import sys
 
+import jax
 import numpy as np
 import pytest
 from fixtures.refiner_records import write_refiner_records
 from fixtures.training import ROOT, SUBPROCESS_ENV
+from flax import nnx
 
 import infer
 from infer.checkpoint import load_refiner
+from threept_jax.data.pretrained import stem_params
 from threept_jax.data.run_dir import RunDir
 from train import eval_refiner
 
@@ -102,14 +105,22 @@ def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypat
     assert RunDir(run, model="refiner").checkpoint_steps() == [2]  # the last one only
     assert json.loads((run / "refiner.json").read_text())["variant"] == "tiny/16"
     model, cfg, step, settings = load_refiner(run)
-    assert step == 2 and cfg.variant == "tiny/16"
+    assert step == 2 and cfg.variant == "tiny/16" and cfg.pretrained_stem == "xfeat"
+    # The device's stem is frozen: after the train steps it is the converted XFeat, exactly
+    # (test_xfeat checks that against upstream's outputs); its token projection has moved.
+    stem = nnx.to_pure_dict(nnx.state(model.stem, nnx.Param))
+    for got, want in zip(jax.tree.leaves(stem), jax.tree.leaves(stem_params("xfeat")),
+                         strict=True):
+        np.testing.assert_array_equal(np.asarray(got), want)
+    assert np.any(np.asarray(model.stem_tokens.kernel[...]))
     assert settings.num_matches == 16 and settings.max_faces == 256
     out = model(np.zeros((1, 1, 64, 64, 3), np.uint8), np.zeros((1, 2, 1, 64, 64, 3), np.uint8))
     assert out["scores"].shape == (1, 2)
     models = infer.load(refiner=run)
     assert models.detector is None and models.refiner_step == 2
     assert models.refine_settings == settings
-    assert eval_refiner.main(["--workdir", str(run), "--num-examples", "2"]) == 0
+    assert eval_refiner.main(["--workdir", str(run), "--split", "train",
+                              "--num-examples", "2"]) == 0
     evaluated = json.loads(capsys.readouterr().out)
     assert evaluated["step"] == 2 and evaluated["eval/num_instances"] >= 1
     with pytest.raises(SystemExit) as e:
