@@ -55,7 +55,11 @@ def make_optimizer(optim: Mapping[str, Any], total_steps: int
                    ) -> tuple[optax.GradientTransformation, optax.Schedule]:
     """AdamW (decay on ndim >= 2 only) after global-norm clipping, warmup + cosine schedule.
 
-    ``optim``: fields of :class:`train.run_config.OptimConfig` (``config.optim``).
+    ``optim``: fields of :class:`train.run_config.OptimConfig` (``config.optim``). Its
+    ``freeze`` groups get zero updates whatever trainer runs (their gradients are zeroed
+    before the clipping, and they get no weight decay); a trainer may also put them behind
+    :func:`hold_frozen` to skip their backward pass. With nothing frozen the optimizer state
+    is as it was before ``freeze`` existed, so older checkpoints resume.
     """
     o = OptimConfig(**dict(optim))
     frozen = frozen_groups(o.freeze)
@@ -68,6 +72,10 @@ def make_optimizer(optim: Mapping[str, Any], total_steps: int
         optax.adamw(schedule, b1=o.b1, b2=o.b2, eps=o.eps, weight_decay=o.weight_decay,
                     mask=functools.partial(decay_mask, frozen=frozen)),
     )
+    if frozen:
+        held = lambda p: {k: jax.tree.map(lambda _, h=k in frozen: h, v)  # noqa: E731
+                          for k, v in p.items()}
+        tx = optax.chain(optax.masked(optax.set_to_zero(), held), tx)
     return tx, schedule
 
 

@@ -25,8 +25,7 @@ iterator, resume, preemption, finiteness checks, TensorBoard, progress bar) is
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable, Mapping
-from typing import Any
+from collections.abc import Iterable
 
 import grain
 import jax
@@ -42,13 +41,7 @@ from threept_jax.models.refiner import Refiner
 from threept_jax.pipeline.refinement import RefineSettings
 from train.eval_refiner import RefinerEvaluator
 from train.refiner_objective import STEP_FIELDS, RefinerAssets, objective, render_batch
-from train.run_config import (
-    OptimConfig,
-    loss_config,
-    model_config,
-    refine_settings,
-    refiner_example_config,
-)
+from train.run_config import loss_config, model_config, refine_settings, refiner_example_config
 from train.trainer import (
     CompiledStep,
     Hook,
@@ -65,17 +58,16 @@ from train.trainer import (
 def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
                     schedule: optax.Schedule, model_cfg: RefinerConfig,
                     loss_cfg: RefinerLossConfig, settings: RefineSettings,
-                    trace_counter: list[int] | None = None, optim: Mapping[str, Any] = ()):
+                    trace_counter: list[int] | None = None, frozen: frozenset[str] = frozenset()):
     """``train_step(state, batch, assets) -> (state, metrics)``, pure (module docstring).
 
-    ``optim``: ``config.optim``, whose ``freeze`` groups get no gradient (``hold_frozen``).
+    ``frozen``: parameter groups behind ``hold_frozen`` (``config.optim.freeze``): no
+    backward pass through them (the optimizer leaves them unchanged either way).
 
     ``batch`` holds :data:`~train.refiner_objective.STEP_FIELDS` with a leading batch axis;
     ``assets`` is the :class:`~train.refiner_objective.RefinerAssets` of the run's objects.
     ``trace_counter[0]`` counts the traces (tests check that it compiles once).
     """
-
-    frozen = frozen_groups(OptimConfig(**dict(optim)).freeze) if optim else frozenset()
 
     def loss_fn(params, batch, assets):
         model = nnx.merge(graphdef, hold_frozen(params, frozen))
@@ -105,7 +97,8 @@ def build_step(config: ml_collections.ConfigDict, assets: RefinerAssets,
     graphdef = nnx.graphdef(nnx.eval_shape(make_model))
     counter = [0]
     step_fn = make_train_step(graphdef, tx, schedule, model_cfg, loss_config(config),
-                              refine_settings(config), counter, optim=config.optim.to_dict())
+                              refine_settings(config), counter,
+                              frozen=frozen_groups(config.optim.freeze))
     return compile_step(make_model, step_fn, tx, schedule, mesh,
                         int(config.mesh.fsdp_min_size), counter, assets=assets)
 

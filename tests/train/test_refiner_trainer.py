@@ -133,6 +133,14 @@ def test_frozen_groups_get_no_gradient_and_no_weight_decay():
                                         "warmup_steps": 0}, total_steps=10)
     updates, _ = tx.update(grads, tx.init(params), params)
     assert not np.any(updates["stem"]["w"]) and np.all(np.abs(updates["head"]["w"]) > 0)
+    # A trainer that does not hold them (the detector's): the optimizer alone leaves them.
+    plain = jax.grad(lambda p: jnp.sum((p["stem"]["w"] @ p["head"]["w"]) ** 2))(params)
+    assert np.all(np.abs(plain["stem"]["w"]) > 0)
+    updates, _ = tx.update(plain, tx.init(params), params)
+    assert not np.any(updates["stem"]["w"]) and np.all(np.abs(updates["head"]["w"]) > 0)
+    # Nothing frozen: the state of before (clipping, AdamW), so older checkpoints resume.
+    none, _ = trainer_lib.make_optimizer({"warmup_steps": 0}, total_steps=10)
+    assert len(none.init(params)) == 2
     with pytest.raises(ValueError, match=r"optim.freeze names \['steam'\].*\['head', 'stem'\]"):
         trainer_lib.hold_frozen(params, frozenset({"steam"}))
 

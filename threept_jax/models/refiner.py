@@ -106,7 +106,7 @@ class Refiner(nnx.Module):
         else:
             self.pixel_stem = nnx.data(None)
         if cfg.pretrained_stem == "xfeat":
-            # A pretrained stem (configs.RefinerConfig.stem): its features join the patch
+            # A pretrained stem (configs.RefinerConfig.pretrained_stem): its features join the patch
             # embeddings through a linear layer that starts at zero, so a fresh network
             # starts as the one without the stem.
             self.stem = XFeat(folded=True, rngs=rngs)

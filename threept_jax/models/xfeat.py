@@ -146,10 +146,12 @@ def fold_batchnorm(model: XFeat) -> XFeat:
         s = jax.lax.rsqrt(src.norm.var[...] + src.norm.epsilon)
         dst.conv.kernel[...] = src.conv.kernel[...] * s
         dst.conv.bias[...] = -src.norm.mean[...] * s
-    for name in ("skip1",):
-        nnx.update(getattr(folded, name), nnx.state(getattr(model, name)))
-    for name in ("block_fusion", "heatmap_head", "keypoint_head"):  # their last layer: a Conv
-        nnx.update(getattr(folded, name).layers[-1], nnx.state(getattr(model, name).layers[-1]))
+    # The plain convolutions: the skip and each head's last layer.
+    for name in ("skip1", "block_fusion", "heatmap_head", "keypoint_head"):
+        src, dst = getattr(model, name), getattr(folded, name)
+        if name != "skip1":
+            src, dst = src.layers[-1], dst.layers[-1]
+        nnx.update(dst, nnx.state(src))
     return folded
 
 
