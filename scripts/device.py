@@ -18,10 +18,13 @@ working tree, which the call limits to 64 MiB with the carry. Three steps:
 ``env.json`` (Python, packages, devices), ``mfu.txt`` (the train-step benchmarks of 3PT-D and
 3PT-R at the ``small`` and ``paper`` sizes: compile time, step time, FLOP/s, MFU against the
 device's peak bf16), ``train.log``, ``run.tar.gz.NN`` (the training run folder with its last
-checkpoint, in 15 MB parts) and ``summary.json`` (steps before and after, minutes of each
-stage). Training resumes from :data:`RUN` when it is there; SIGTERM at the deadline saves a checkpoint, so a
-draw that ends early still brings back its last one. ``--dry-run`` runs every stage at the
-``tiny`` size for a few steps: the tests run it on CPU.
+checkpoint, in 15 MB parts) and ``summary.json`` (each training stage's steps before and after,
+minutes of each stage). Training goes through two stages (:data:`STAGES`): XFeat frozen for
+:data:`FROZEN_STEPS`, then the whole network fine-tuned from that run, in the same draw when
+time is left. It resumes from :data:`RUN` when it is there, in the stage that run is in;
+SIGTERM at the deadline saves a checkpoint, so a draw that ends early still brings back its
+last one. ``--dry-run`` runs every stage at the ``tiny`` size for a few steps: the tests run it
+on CPU.
 """
 
 from __future__ import annotations
@@ -65,11 +68,18 @@ RUN_LIMIT = 4 * PART_BYTES
 #: travels both ways; that of ``small`` (S/14, 35.9 M parameters: 430 MB) cannot.
 CONFIG = "cpu"
 CONFIG_OVERRIDES = ("--config.model.crop_size=128", "--config.model.output_size=64",
-                    "--config.model.pretrained_stem=xfeat", "--config.optim.freeze=stem",
-                    "--config.batch_size=64")
-#: The dry run's (CPU, tests): the device's stem, at the ``tiny`` size.
+                    "--config.model.pretrained_stem=xfeat", "--config.batch_size=64")
+#: The plan's two stages, the recipe that worked on CPU (docs/training.md, "Pretrained stems":
+#: the gain came with fine-tuning, not with more frozen steps): the stem frozen for
+#: ``FROZEN_STEPS``, then the whole network fine-tuned from the frozen run's best checkpoint
+#: (a new run, ``init_from``) at a lower learning rate for the rest of :data:`PLAN_STEPS`.
+FROZEN_STEPS = 2000
+STAGES = {"frozen": ("--config.optim.freeze=stem",),
+          "fine-tune": ("--config.optim.freeze=", "--config.optim.learning_rate=3e-4")}
+#: The dry run's (CPU, tests): the device's stem and stages, at the ``tiny`` size.
 DRY_CONFIG = "tiny"
-DRY_OVERRIDES = ("--config.model.pretrained_stem=xfeat", "--config.optim.freeze=stem",
+DRY_FROZEN_STEPS = 2
+DRY_OVERRIDES = ("--config.model.pretrained_stem=xfeat",
                  "--config.batch_size=2", "--config.mesh.data=1",
                  "--config.data.num_hypotheses=2", "--config.refine.max_faces=256",
                  "--config.refine.num_matches=16", "--config.eval.every_steps=0",
@@ -80,8 +90,11 @@ BENCH_MESHES = (4, 5, 6, 7)
 MFU_SHARE = 0.3
 #: Where the device's run lives between draws (it travels with the working tree).
 RUN = ROOT / "models" / "refiner-gpu-run"
-#: Steps of the whole plan: the learning-rate schedule spans every draw (each resumes it).
+#: Steps of the whole plan: each stage's learning-rate schedule spans the draws it takes (each
+#: resumes it).
 PLAN_STEPS = 20000
+#: The least time left in a draw worth starting the fine-tuning stage in (its compilation).
+MIN_STAGE_SECONDS = 180
 
 
 def _wheel_dist(path: pathlib.Path) -> str:
@@ -214,6 +227,13 @@ def _checkpoint_steps(workdir: pathlib.Path) -> list[int]:
     return RunDir(workdir, model="refiner").checkpoint_steps()
 
 
+def _frozen(workdir: pathlib.Path) -> bool:
+    """Whether the run in ``workdir`` is the plan's frozen stage (its stem held fixed)."""
+    from threept_jax.data.run_dir import RunDir
+
+    return RunDir(workdir, model="refiner").read_config().get("optim", {}).get("freeze") == "stem"
+
+
 def _pack(workdir: pathlib.Path, out: pathlib.Path) -> int:
     """The run folder with its last checkpoint only (the next draw resumes it; which step is
     best is measured here, on held-out data), gzipped, in parts of :data:`PART_BYTES`
@@ -269,31 +289,54 @@ def run(minutes: float, carry: pathlib.Path, out: pathlib.Path, dry_run: bool,
                                          if left > 10 else "skipped: no time left")
         summary["minutes"]["mfu"] = (time.monotonic() - t) / 60
 
-    # (b) Training to the deadline, resumed from the last draw's run.
+    # (b) Training to the deadline, resumed from the last draw's run: the frozen stage to its
+    # last step, then (in the same draw when time is left) the fine-tuning stage.
     t = time.monotonic()
     workdir = pathlib.Path(tempfile.mkdtemp(prefix="device_run_")) / "run"
     if resume.is_dir():
         shutil.copytree(resume, workdir)
-    summary["steps_before"] = (_checkpoint_steps(workdir) or [0])[-1]
-    config = DRY_CONFIG if dry_run else CONFIG
-    total = summary["steps_before"] + 2 if dry_run else PLAN_STEPS
-    command = [sys.executable, "train/launch.py",
-               f"--config=train/configs/refiner.py:{config}", f"--workdir={workdir}",
-               f"--config.data_dir={records.resolve()}", f"--config.total_steps={total}",
-               "--config.progress_bar=False", "--config.checkpoint.async_save=False",
-               # The carry's absolute path may differ between draws; its records must not
-               # (the saved data iterator indexes them): a new records subset is a new run.
-               "--allow_config_change"]
-    if dry_run:
-        command += DRY_OVERRIDES
-    else:
-        command += [*CONFIG_OVERRIDES, "--config.checkpoint.every_steps=250",
-                    "--config.eval.every_steps=1000",
-                    f"--config.data.num_workers={max(1, min(12, (os.cpu_count() or 2) - 2))}"]
+    frozen_steps = DRY_FROZEN_STEPS if dry_run else FROZEN_STEPS
     pack_seconds = 90  # up to 60 s for the SIGTERM save, then the packing
-    summary["train_status"] = _stage(command, out / "train.log",
-                                     deadline - pack_seconds - time.monotonic(), env)
-    summary["steps_after"] = (_checkpoint_steps(workdir) or [0])[-1]
+    summary["train"], stage, init_from = [], "frozen", None
+    if _checkpoint_steps(workdir) and not _frozen(workdir):
+        stage = "fine-tune"  # resumed
+    elif _checkpoint_steps(workdir) and _checkpoint_steps(workdir)[-1] >= frozen_steps:
+        # The frozen stage ended with the last draw: fine-tuning starts from it.
+        stage, init_from, workdir = "fine-tune", workdir, workdir.with_name("fine-tune")
+    while True:
+        before = (_checkpoint_steps(workdir) or [0])[-1]
+        if stage == "frozen":
+            total = frozen_steps
+        else:
+            total = before + 2 if dry_run else PLAN_STEPS - frozen_steps
+        command = [sys.executable, "train/launch.py",
+                   f"--config=train/configs/refiner.py:{DRY_CONFIG if dry_run else CONFIG}",
+                   f"--workdir={workdir}", f"--config.data_dir={records.resolve()}",
+                   f"--config.total_steps={total}", "--config.progress_bar=False",
+                   "--config.checkpoint.async_save=False",
+                   # The carry's absolute path may differ between draws; its records must not
+                   # (the saved data iterator indexes them): a new records subset is a new run.
+                   "--allow_config_change", *STAGES[stage]]
+        if init_from is not None:
+            command.append(f"--config.init_from={init_from}")
+        if dry_run:
+            command += DRY_OVERRIDES
+        else:
+            command += [*CONFIG_OVERRIDES, "--config.checkpoint.every_steps=250",
+                        "--config.eval.every_steps=1000",
+                        f"--config.data.num_workers={max(1, min(12, (os.cpu_count() or 2) - 2))}"]
+        status = _stage(command, out / "train.log", deadline - pack_seconds - time.monotonic(),
+                        env)
+        summary["train"].append({"stage": stage, "workdir": str(workdir), "status": status,
+                                 "steps_before": before,
+                                 "steps_after": (_checkpoint_steps(workdir) or [0])[-1]})
+        left = deadline - pack_seconds - time.monotonic()
+        if (stage == "fine-tune" or status != 0 or summary["train"][-1]["steps_after"]
+                < frozen_steps or left < MIN_STAGE_SECONDS):
+            break
+        stage, init_from, workdir = "fine-tune", workdir, workdir.with_name("fine-tune")
+    if not _checkpoint_steps(workdir) and init_from is not None:
+        workdir = init_from  # the fine-tuning stage saved nothing: the frozen run goes back
     summary["minutes"]["train"] = (time.monotonic() - t) / 60
 
     # (c) What comes back.

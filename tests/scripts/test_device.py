@@ -93,26 +93,35 @@ def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypat
     device("prepare", "--records", str(records), "--out", str(carry), "--images", "4",
            "--val-images", "2", "--no-wheels")
     first = draw(tmp_path / "out1")
-    assert first["mfu_status"] == [0, 0] and first["train_status"] == 0
-    assert (first["steps_before"], first["steps_after"]) == (0, 2)
+    assert first["mfu_status"] == [0, 0]
+    # The plan's two stages in one draw: the stem frozen to its last step, then fine-tuning.
+    frozen, tuned = first["train"]
+    assert [(s["stage"], s["status"], s["steps_before"], s["steps_after"])
+            for s in first["train"]] == [("frozen", 0, 0, 2), ("fine-tune", 0, 0, 2)]
     env_json = json.loads((tmp_path / "out1" / "env.json").read_text())
     assert env_json["backend"] == "cpu" and env_json["packages"]["jax"]
     mfu = (tmp_path / "out1" / "mfu.txt").read_text()
     assert mfu.count("x the matmul reference") == 2  # 3PT-D's step and 3PT-R's, both timed
+    # The frozen stage's stem after its train steps is the converted XFeat, exactly (test_xfeat
+    # checks that against upstream's outputs); its token projection has moved.
+    xfeat = jax.tree.leaves(stem_params("xfeat"))
+    model = load_refiner(frozen["workdir"])[0]
+    for got, want in zip(jax.tree.leaves(nnx.to_pure_dict(nnx.state(model.stem, nnx.Param))),
+                         xfeat, strict=True):
+        np.testing.assert_array_equal(np.asarray(got), want)
+    assert np.any(np.asarray(model.stem_tokens.kernel[...]))
     device("unpack", "--files", str(tmp_path / "out1"), "--to", str(run))
-    # What came back is an ordinary 3PT-R run that the launcher wrote: inference loads it
-    # with the step options it was trained with, and the evaluation command reads it.
+    # What came back is the fine-tuning run, an ordinary 3PT-R run that the launcher wrote,
+    # started from the frozen one: inference loads it with the step options it was trained
+    # with, and the evaluation command reads it.
     assert RunDir(run, model="refiner").checkpoint_steps() == [2]  # the last one only
+    config = RunDir(run, model="refiner").read_config()
+    assert config["optim"]["freeze"] == "" and config["init_from"] == frozen["workdir"]
     assert json.loads((run / "refiner.json").read_text())["variant"] == "tiny/16"
     model, cfg, step, settings = load_refiner(run)
     assert step == 2 and cfg.variant == "tiny/16" and cfg.pretrained_stem == "xfeat"
-    # The device's stem is frozen: after the train steps it is the converted XFeat, exactly
-    # (test_xfeat checks that against upstream's outputs); its token projection has moved.
-    stem = nnx.to_pure_dict(nnx.state(model.stem, nnx.Param))
-    for got, want in zip(jax.tree.leaves(stem), jax.tree.leaves(stem_params("xfeat")),
-                         strict=True):
-        np.testing.assert_array_equal(np.asarray(got), want)
-    assert np.any(np.asarray(model.stem_tokens.kernel[...]))
+    stem = jax.tree.leaves(nnx.to_pure_dict(nnx.state(model.stem, nnx.Param)))
+    assert any(np.any(np.asarray(got) != want) for got, want in zip(stem, xfeat, strict=True))
     assert settings.num_matches == 16 and settings.max_faces == 256
     out = model(np.zeros((1, 1, 64, 64, 3), np.uint8), np.zeros((1, 2, 1, 64, 64, 3), np.uint8))
     assert out["scores"].shape == (1, 2)
@@ -127,19 +136,39 @@ def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypat
         eval_refiner.main(["--workdir", str(tmp_path)])
     assert e.value.code == 2
 
-    # The next draw finds the run where unpack put it: the launcher (whose resume test_resume
-    # covers) is started in a workdir holding it, to go on from its last step.
+    # The next draws find the run where unpack put it: the launcher (whose resume test_resume
+    # covers) is started in a workdir holding it, to go on from its last step in its stage.
     module, seen = _device(), []
 
     def stage(command, log, seconds, env):
         workdir = pathlib.Path(next(a for a in command if a.startswith("--workdir="))[10:])
-        seen.append((command, RunDir(workdir, model="refiner").checkpoint_steps()))
+        seen.append((command, workdir, RunDir(workdir, model="refiner").checkpoint_steps()))
         return 0
 
     monkeypatch.setattr(module, "_stage", stage)
     second = module.run(10.0, carry, tmp_path / "out2", dry_run=True, mfu=False, resume=run)
-    (command, steps), = seen  # the training stage only
+    (command, _, steps), = seen  # the training stage only
     assert command[1] == "train/launch.py" and steps == [2]
-    assert "--config.total_steps=4" in command and second["steps_before"] == 2
+    assert "--config.total_steps=4" in command and "--config.optim.freeze=" in command
+    assert not any(a.startswith("--config.init_from") for a in command)
+    assert [(s["stage"], s["steps_before"]) for s in second["train"]] == [("fine-tune", 2)]
     assert "--allow_config_change" in command  # the carry's path may differ between draws
     assert "mfu_status" not in second and (tmp_path / "out2" / "run.tar.gz.00").exists()
+    # A draw that finds the frozen stage at its last step starts fine-tuning from it; one that
+    # finds it short goes on with it.
+    seen.clear()
+    third = module.run(10.0, carry, tmp_path / "out3", dry_run=True, mfu=False,
+                       resume=pathlib.Path(frozen["workdir"]))
+    (command, workdir, steps), = seen
+    assert steps == [] and "--config.optim.freeze=" in command
+    assert f"--config.init_from={workdir.with_name('run')}" in command
+    assert third["train"][0]["stage"] == "fine-tune"  # it saved nothing: the frozen run goes
+    assert third["run_bytes"] > 0  # back
+    seen.clear()
+    monkeypatch.setattr(module, "DRY_FROZEN_STEPS", 4)
+    module.run(10.0, carry, tmp_path / "out4", dry_run=True, mfu=False,
+               resume=pathlib.Path(frozen["workdir"]))
+    (command, _, steps), = seen
+    assert steps[-1] == 2 and "--config.optim.freeze=stem" in command
+    assert "--config.total_steps=4" in command
+    assert not any(a.startswith("--config.init_from") for a in command)
