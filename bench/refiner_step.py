@@ -26,9 +26,15 @@ the camera, hypotheses drawn by the data pipeline's own noise (``perturb_poses``
 around the first one (``crop_boxes``), so every render shows the object (checked before
 timing); random uint8 crops, a disc as the visible mask, identity symmetries.
 
+Data (``--records DIR``, issue 40 item 3): the training pipeline's real side
+(:func:`threept_jax.data.refiner_input.refiner_dataset` over DIR's train split at the variant's
+example config: decoding, sampling an instance, perturbing its hypotheses, cutting its crop)
+timed in this process on one thread, against what the warm step consumes: the ratio says
+how many data workers feed the step (the device's goal: 1.2 x what it consumes).
+
 Variants are the configs of ``train/configs/refiner.py``: ``tiny`` and ``cpu`` everywhere, plus
 ``small`` when an accelerator is present; the batch is the config's ``batch_size``.
-``python bench/refiner_step.py [--variants tiny cpu] [--steps 5] [--batch N]``.
+``python bench/refiner_step.py [--variants tiny cpu] [--steps 5] [--batch N] [--records DIR]``.
 """
 
 from __future__ import annotations
@@ -54,6 +60,7 @@ from threept_jax.data.refiner_input import (  # noqa: E402
     RefinerExampleConfig,
     RefinerMeshes,
     perturb_poses,
+    refiner_dataset,
 )
 from threept_jax.geometry.camera import crop_intrinsics  # noqa: E402
 from threept_jax.geometry.framing import crop_boxes  # noqa: E402
@@ -207,6 +214,20 @@ def bench_variant(variant: str, steps: int, batch_override: int | None,
                 analytic=encoder_train_flops(model_cfg, batch, num_hyp))
 
 
+def data_rate(records: pathlib.Path, variant: str, examples: int) -> float:
+    """Examples/s one thread of this process makes from ``records``' train split at
+    ``variant``'s example config (the first 2 examples, which open the files, are not
+    timed)."""
+    ds = refiner_dataset(records, "train", refiner_example_config(
+        refiner_configs.get_config(variant)), seed=0, batch_size=None)
+    for i in range(2):
+        ds[i]
+    t0 = time.perf_counter()
+    for i in range(2, 2 + examples):
+        ds[i]
+    return examples / (time.perf_counter() - t0)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variants", nargs="*", default=None, choices=list(REFINER_SIZES),
@@ -217,7 +238,15 @@ def main() -> None:
                         help="override the batch size (default: the config's batch_size)")
     parser.add_argument("--models", type=pathlib.Path, default=MODELS,
                         help="folder of the T-LESS models obj 4-7 (default: ../shared's)")
+    parser.add_argument("--records", type=pathlib.Path, default=None,
+                        help="a records folder: also time the training data's real side "
+                             "against the step (module docstring)")
+    parser.add_argument("--data-examples", type=int, default=64,
+                        help="examples timed with --records")
     args = parser.parse_args()
+    if args.records is not None and not (args.records / "objects.json").is_file():
+        parser.error(f"--records {args.records} is not a records folder (no objects.json): "
+                     "pass a train.adapt, campaign or datagen.pack output")
     if args.steps < 1:
         parser.error(f"--steps must be >= 1, got {args.steps}")
     if args.batch is not None and args.batch < 1:
@@ -243,6 +272,13 @@ def main() -> None:
                 f"analytic encoder count {r['analytic'] / 1e9:.2f}), "
                 f"{achieved / 1e9:.1f} GFLOP/s = {achieved / ref:.3f} x the matmul reference")
         print(line + mfu_note(achieved), flush=True)
+        if args.records is not None:
+            made = data_rate(args.records, v, args.data_examples)
+            workers = int(np.ceil(1.2 * r["examples_per_s"] / made))
+            print(f"{v} data: one thread makes {made:.3g} examples/s from {args.records} = "
+                  f"{made / r['examples_per_s']:.3f} x what the step consumes "
+                  f"({r['examples_per_s']:.3g}/s); {workers} data worker"
+                  f"{'s' if workers > 1 else ''} feed it 1.2 x", flush=True)
 
 
 if __name__ == "__main__":

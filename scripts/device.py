@@ -283,7 +283,8 @@ def run(minutes: float, carry: pathlib.Path, out: pathlib.Path, dry_run: bool,
         for i, command in enumerate((
                 [sys.executable, "bench/train_step.py", "--variants", *detector, *steps],
                 [sys.executable, "bench/refiner_step.py", "--variants", *refiner, *steps,
-                 "--models", str(carry / "meshes")])):
+                 "--models", str(carry / "meshes"), "--records", str(records),
+                 "--data-examples", "4" if dry_run else "256"])):
             left = start + minutes * 60 * MFU_SHARE * (i + 1) / 2 - time.monotonic()
             summary["mfu_status"].append(_stage(command, out / "mfu.txt", left, env)
                                          if left > 10 else "skipped: no time left")
@@ -325,11 +326,12 @@ def run(minutes: float, carry: pathlib.Path, out: pathlib.Path, dry_run: bool,
             command += [*CONFIG_OVERRIDES, "--config.checkpoint.every_steps=250",
                         "--config.eval.every_steps=1000",
                         f"--config.data.num_workers={max(1, min(12, (os.cpu_count() or 2) - 2))}"]
-        status = _stage(command, out / "train.log", deadline - pack_seconds - time.monotonic(),
-                        env)
+        began = time.monotonic()
+        status = _stage(command, out / "train.log", deadline - pack_seconds - began, env)
         summary["train"].append({"stage": stage, "workdir": str(workdir), "status": status,
                                  "steps_before": before,
-                                 "steps_after": (_checkpoint_steps(workdir) or [0])[-1]})
+                                 "steps_after": (_checkpoint_steps(workdir) or [0])[-1],
+                                 "minutes": (time.monotonic() - began) / 60})
         left = deadline - pack_seconds - time.monotonic()
         if (stage == "fine-tune" or status != 0 or summary["train"][-1]["steps_after"]
                 < frozen_steps or left < MIN_STAGE_SECONDS):

@@ -98,10 +98,12 @@ def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypat
     frozen, tuned = first["train"]
     assert [(s["stage"], s["status"], s["steps_before"], s["steps_after"])
             for s in first["train"]] == [("frozen", 0, 0, 2), ("fine-tune", 0, 0, 2)]
+    assert sum(s["minutes"] for s in first["train"]) <= first["minutes"]["train"]
     env_json = json.loads((tmp_path / "out1" / "env.json").read_text())
     assert env_json["backend"] == "cpu" and env_json["packages"]["jax"]
     mfu = (tmp_path / "out1" / "mfu.txt").read_text()
     assert mfu.count("x the matmul reference") == 2  # 3PT-D's step and 3PT-R's, both timed
+    assert "tiny data: one thread makes" in mfu  # the carried records against the step
     # The frozen stage's stem after its train steps is the converted XFeat, exactly (test_xfeat
     # checks that against upstream's outputs); its token projection has moved.
     xfeat = jax.tree.leaves(stem_params("xfeat"))
