@@ -77,6 +77,7 @@ def main(argv=None) -> None:
         raise SystemExit(f"no estimate of {args.initial} lies within {args.within:g} mm of its "
                          "part: nothing to compare")
     print(f"{len(matched)} of {len(initial)} estimates within {args.within:g} mm of their part")
+    start = np.median(errors(initial, matched, syms)[:, 1])
     for path in [args.initial, *args.refined]:
         est = read_pose_results(path)
         if len(est) != len(initial) or any(
@@ -88,7 +89,7 @@ def main(argv=None) -> None:
         rot, trans = err[:, 0], err[:, 1]
         print(f"{path}: rotation median {np.median(rot):.2f} deg (< 5 deg {np.mean(rot < 5):.2f},"
               f" < 10 deg {np.mean(rot < 10):.2f}), translation median {np.median(trans):.2f} mm"
-              f" ({np.median(trans) / np.median(errors(initial, matched, syms)[:, 1]):.3f} x the "
+              f" ({np.median(trans) / start:.3f} x the "
               "initial)")
 
 

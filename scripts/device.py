@@ -299,9 +299,10 @@ def run(minutes: float, carry: pathlib.Path, out: pathlib.Path, dry_run: bool,
     frozen_steps = DRY_FROZEN_STEPS if dry_run else FROZEN_STEPS
     pack_seconds = 90  # up to 60 s for the SIGTERM save, then the packing
     summary["train"], stage, init_from = [], "frozen", None
-    if _checkpoint_steps(workdir) and not _frozen(workdir):
+    found = _checkpoint_steps(workdir)
+    if found and not _frozen(workdir):
         stage = "fine-tune"  # resumed
-    elif _checkpoint_steps(workdir) and _checkpoint_steps(workdir)[-1] >= frozen_steps:
+    elif found and found[-1] >= frozen_steps:
         # The frozen stage ended with the last draw: fine-tuning starts from it.
         stage, init_from, workdir = "fine-tune", workdir, workdir.with_name("fine-tune")
     while True:

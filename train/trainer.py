@@ -73,9 +73,8 @@ def make_optimizer(optim: Mapping[str, Any], total_steps: int
                     mask=functools.partial(decay_mask, frozen=frozen)),
     )
     if frozen:
-        held = lambda p: {k: jax.tree.map(lambda _, h=k in frozen: h, v)  # noqa: E731
-                          for k, v in p.items()}
-        tx = optax.chain(optax.masked(optax.set_to_zero(), held), tx)
+        tx = optax.chain(optax.masked(optax.set_to_zero(),
+                                      functools.partial(frozen_mask, frozen=frozen)), tx)
     return tx, schedule
 
 
@@ -90,13 +89,24 @@ def frozen_groups(freeze: str) -> frozenset[str]:
     return frozenset(k.strip() for k in str(freeze).split(",") if k.strip())
 
 
-def hold_frozen(params: Mapping[str, Any], frozen: frozenset[str]) -> dict[str, Any]:
-    """``params`` with the ``frozen`` groups behind ``jax.lax.stop_gradient`` (their gradient
-    is zero, and XLA drops the backward pass through them); an unknown name is a ValueError."""
+def _check_groups(params: Mapping[str, Any], frozen: frozenset[str]) -> None:
     unknown = sorted(frozen - set(params))
     if unknown:
         raise ValueError(f"optim.freeze names {unknown}, which the model does not have; its "
                          f"parameter groups: {sorted(params)}")
+
+
+def frozen_mask(params: Mapping[str, Any], frozen: frozenset[str]) -> dict:
+    """True on every leaf of the ``frozen`` groups (the optimizer zeroes their updates); an
+    unknown name is a ValueError, for every trainer."""
+    _check_groups(params, frozen)
+    return {k: jax.tree.map(lambda _, held=k in frozen: held, v) for k, v in params.items()}
+
+
+def hold_frozen(params: Mapping[str, Any], frozen: frozenset[str]) -> dict[str, Any]:
+    """``params`` with the ``frozen`` groups behind ``jax.lax.stop_gradient`` (their gradient
+    is zero, and XLA drops the backward pass through them); an unknown name is a ValueError."""
+    _check_groups(params, frozen)
     return {k: jax.lax.stop_gradient(v) if k in frozen else v for k, v in params.items()}
 
 

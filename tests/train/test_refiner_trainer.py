@@ -141,6 +141,9 @@ def test_frozen_groups_get_no_gradient_and_no_weight_decay():
     assert len(none.init(params)) == 2
     with pytest.raises(ValueError, match=r"optim.freeze names \['steam'\].*\['head', 'stem'\]"):
         trainer_lib.hold_frozen(params, frozenset({"steam"}))
+    typo, _ = trainer_lib.make_optimizer({"freeze": "steam"}, total_steps=10)
+    with pytest.raises(ValueError, match=r"optim.freeze names \['steam'\]"):
+        typo.init(params)  # any trainer's optimizer refuses it too
 
 
 def test_a_refiner_run_refuses_a_detector_workdir(records, tmp_path):
