@@ -27,7 +27,8 @@ This is the detector alone; the BOP 6D AP after refinement comes from ``python -
 --detector templates --evaluate`` (docs/benchmarks.md).
 
     python bench/shape_search.py [--data DIR] [--images 8] [--per-image] [--no-depth-range]
-        [--by-parts] [--ceiling] [--templates-score FILE] [--candidates 300] [--out F.json]
+        [--by-parts] [--ceiling] [--templates-score FILE] [--candidates 300] [--per-proposal 1]
+        [--contour-iterations 1] [--out F.json]
 """
 
 from __future__ import annotations
@@ -150,6 +151,10 @@ def main(argv=None):
     p.add_argument("--images", type=int, default=8)
     p.add_argument("--candidates", type=int, default=None, help="poses verified per image")
     p.add_argument("--proposals", type=int, default=None, help="selective-search boxes")
+    p.add_argument("--per-proposal", type=int, default=None,
+                   help="templates kept per proposal and part")
+    p.add_argument("--contour-iterations", type=int, default=None,
+                   help="iterations of the verification's contour refinement at each scale")
     p.add_argument("--no-3pt", action="store_true", help="skip the 3PT-D reference")
     p.add_argument("--per-image", action="store_true",
                    help="query each image with the parts it shows (a cell that knows its "
@@ -179,7 +184,11 @@ def main(argv=None):
     meshes = {k: m.path for k, m in ds.models().items()}
     settings = ss.ShapeSearchSettings()
     over = {k: v for k, v in (("candidates", args.candidates),
-                              ("max_proposals", args.proposals)) if v is not None}
+                              ("max_proposals", args.proposals),
+                              ("per_proposal", args.per_proposal)) if v is not None}
+    if args.contour_iterations is not None:
+        over["contour"] = dataclasses.replace(settings.contour,
+                                              iterations=args.contour_iterations)
     settings = dataclasses.replace(settings, **over)
 
     weights = None if args.templates_score is None else load_score_weights(args.templates_score)
