@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import pathlib
 import sys
@@ -71,7 +72,7 @@ def run(detect, split, keys, per_image=None):
         scene = split.scene(s)
         image, K = scene.image(im), scene.cameras[im].K
         if per_image is not None:
-            detect = per_image(sorted({g.obj_id for g in scene.gt[im]})).detect
+            detect = per_image(tuple(sorted({g.obj_id for g in scene.gt[im]}))).detect
             detect(image, K)
         t = time.perf_counter()
         found = detect(image, K)
@@ -104,7 +105,7 @@ def ceiling(detector, data, split_name, split, keys, per_image=None):
     for s, im in tqdm(keys, desc="ceiling", leave=False):
         scene = split.scene(s)
         if per_image is not None:
-            detector = per_image(sorted({g.obj_id for g in scene.gt[im]}))
+            detector = per_image(tuple(sorted({g.obj_id for g in scene.gt[im]})))
         ids = np.array([o.obj_id for o in detector.objects])
         image = scene.image(im)
         c = detector.candidates(image, scene.cameras[im].K)
@@ -206,6 +207,7 @@ def main(argv=None):
     if args.per_image:
         by_id = {o.obj_id: o for o in objects}
 
+        @functools.lru_cache(maxsize=None)  # run() and ceiling() ask for the same part sets
         def per_image(ids):
             return ShapeSearchDetector([by_id[i] for i in ids], depth_range=depth,
                                        score_threshold=0.0, max_detections=30,
