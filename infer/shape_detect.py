@@ -102,7 +102,7 @@ def load_score_weights(path: str | os.PathLike) -> dict[int, tuple[float, ...]]:
 class Candidates(NamedTuple):
     """Verified candidates of one image, before scoring and NMS: refined poses [n, 4, 4]
     T_cam_obj, ``obj`` [n] (rows of the detector's ``objects``), outline boxes ``xyxy`` [n, 4]
-    and :data:`~threept_jax.pipeline.shape_search.FEATURES` [n, F]."""
+    (clipped to the image) and :data:`~threept_jax.pipeline.shape_search.FEATURES` [n, F]."""
 
     poses: np.ndarray
     obj: np.ndarray
@@ -221,6 +221,8 @@ class ShapeSearchDetector:
         chosen = select_candidates(template, obj, s.candidates)
         refined, xyxy, features = self._verify(image, response, K, poses[chosen], obj[chosen],
                                                template[chosen])
+        # Boxes of what the image shows: a part cut by the image's side is boxed to it.
+        xyxy = np.clip(xyxy, 0, np.array([hw[1], hw[0], hw[1], hw[0]], np.float32))
         return Candidates(refined, obj[chosen].astype(np.int32), xyxy, features)
 
     def detect(self, image: np.ndarray, K: np.ndarray) -> Detections:

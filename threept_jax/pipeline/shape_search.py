@@ -11,8 +11,9 @@ every learned detector must beat). Four stages per image:
 2. **Pose search** (:func:`search`): each part's contour templates (:func:`shape_templates`,
    the contour model's stored views times in-plane turns, their outline points and normals in
    the image plane) are fitted to each proposal: the template's box fixes the distance (its
-   area against the proposal's; inside the depth range, the aspect within ``box_fit`` IoU) and
-   the centre, and the template scores by the LINE-2D orientation similarity of its outline
+   area against the proposal's, or its extent along the image side that a proposal there
+   touches: a part cut by the image's side; inside the depth range, the aspect within
+   ``box_fit`` IoU) and the centre, and the template scores by the LINE-2D orientation similarity of its outline
    with the image's gradients (:func:`orientation_response`: quantised orientations spread
    over a few pixels, Hinterstoisser et al., PAMI 2012). Each part keeps its best
    ``per_proposal`` templates per proposal, proposals thinned by NMS.
@@ -205,6 +206,15 @@ def proposals(image: np.ndarray, settings: ShapeSearchSettings) -> np.ndarray:
     return boxes.reshape(-1, 4)
 
 
+#: A proposal within this many pixels of an image side touches it: the part in it may be cut
+#: there (:func:`fit_templates`).
+BORDER_PX = 3.0
+#: Least share of a template's outline (and of its box) inside the image for it to fit a part
+#: cut by the image's side; its similarity is over the outline inside, and over at least this
+#: share of all of it.
+MIN_VISIBLE = 0.5
+
+
 @functools.partial(jax.jit, static_argnames=("box_fit", "k"))
 def fit_templates(response: Array, boxes: Array, xy: Array, bins: Array, valid: Array,
                   K: Array, depth_range: Array, box_fit: float, k: int):
@@ -214,22 +224,47 @@ def fit_templates(response: Array, boxes: Array, xy: Array, bins: Array, valid: 
     [R, n] (one object's :class:`ShapeTemplates`); K [3, 3]; depth_range [2] mm (object
     centres). Returns scores [B, k] (mean response over the outline; -1 where no template fits
     the box), template index [B, k], depth [B, k] (mm) and centre [B, k, 2] (px, the object
-    centre's projection). Jitted (one compilation per image size and template count)."""
+    centre's projection). Jitted (one compilation per image size and template count).
+
+    A template's distance comes from the proposal's area, its centre from the proposal's. A
+    proposal that touches one image side (within :data:`BORDER_PX`) may hold a part cut by it:
+    its extent along that side is whole, so the distance comes from it, and the template's
+    box is put against the proposal's far side, running out of the image. Either way a
+    template fits when its box, clipped to the image, overlaps the proposal by ``box_fit`` IoU
+    with at least :data:`MIN_VISIBLE` of it inside. It scores by the mean response over its
+    outline points inside the image (at least :data:`MIN_VISIBLE` of them counted) times the
+    square root of the share inside: part of an outline fits the image by chance more often
+    than all of it, and at the full mean the fits of cut parts took the verification's places
+    from whole parts (docs/benchmarks.md, "Parts cut by the image's side"). A proposal in a
+    corner keeps the area's distance (neither extent is whole)."""
     fx, fy = K[0, 0], K[1, 1]
+    H, W = response.shape[1:]
     big = jnp.float32(1e9)
     lo = jnp.min(jnp.where(valid[..., None], xy, big), 1)  # [R, 2]
     hi = jnp.max(jnp.where(valid[..., None], xy, -big), 1)
     size = jnp.maximum(hi - lo, 1e-3)
-    bw, bh = boxes[:, 2:3], boxes[:, 3:4]
-    Z = jnp.sqrt(fx * size[:, 0] * fy * size[:, 1] / jnp.maximum(bw * bh, 1.0))  # [B, R]
+    x0, y0, bw, bh = (boxes[:, i:i + 1] for i in range(4))  # [B, 1]
+    left, top = x0 <= BORDER_PX, y0 <= BORDER_PX
+    right, bottom = x0 + bw >= W - BORDER_PX, y0 + bh >= H - BORDER_PX
+    cut_x = (left ^ right) & ~top & ~bottom  # cut on the left or right: its height is whole
+    cut_y = (top ^ bottom) & ~left & ~right
+    Z = jnp.where(cut_x, fy * size[:, 1] / jnp.maximum(bh, 1.0),
+                  jnp.where(cut_y, fx * size[:, 0] / jnp.maximum(bw, 1.0),
+                            jnp.sqrt(fx * size[:, 0] * fy * size[:, 1]
+                                     / jnp.maximum(bw * bh, 1.0))))  # [B, R]
     pw, ph = fx * size[:, 0] / Z, fy * size[:, 1] / Z
-    inter = jnp.minimum(pw, bw) * jnp.minimum(ph, bh)
-    fits = ((inter / (pw * ph + bw * bh - inter) >= box_fit)
+    tx = jnp.where(cut_x & left, x0 + bw - pw, jnp.where(cut_x & right, x0, x0 + (bw - pw) / 2))
+    ty = jnp.where(cut_y & top, y0 + bh - ph, jnp.where(cut_y & bottom, y0, y0 + (bh - ph) / 2))
+    cw = jnp.clip(tx + pw, 0, W) - jnp.clip(tx, 0, W)  # the template's box inside the image
+    ch = jnp.clip(ty + ph, 0, H) - jnp.clip(ty, 0, H)
+    inter = (jnp.maximum(jnp.minimum(tx + pw, x0 + bw) - jnp.maximum(tx, x0), 0)
+             * jnp.maximum(jnp.minimum(ty + ph, y0 + bh) - jnp.maximum(ty, y0), 0))
+    fits = ((inter / jnp.maximum(cw * ch + bw * bh - inter, 1e-6) >= box_fit)
+            & (cw * ch >= MIN_VISIBLE * pw * ph)
             & (Z >= depth_range[0]) & (Z <= depth_range[1]) & jnp.any(valid, -1))
-    cu = boxes[:, 0:1] + bw / 2 - (lo[:, 0] + hi[:, 0]) / 2 * fx / Z
-    cv = boxes[:, 1:2] + bh / 2 - (lo[:, 1] + hi[:, 1]) / 2 * fy / Z
-    H, W = response.shape[1:]
-    n_valid = jnp.maximum(jnp.sum(valid, -1), 1)
+    cu = tx - lo[:, 0] * fx / Z
+    cv = ty - lo[:, 1] * fy / Z
+    n_valid = jnp.sum(valid, -1)
 
     def one(args):
         cu_, cv_, Z_, fits_ = args  # [R]
@@ -237,7 +272,11 @@ def fit_templates(response: Array, boxes: Array, xy: Array, bins: Array, valid: 
         v = jnp.round(cv_[:, None] + xy[..., 1] * fy / Z_[:, None]).astype(jnp.int32)
         inside = valid & (u >= 0) & (u < W) & (v >= 0) & (v < H)
         r = response[bins, jnp.clip(v, 0, H - 1), jnp.clip(u, 0, W - 1)]
-        s = jnp.where(fits_, jnp.sum(jnp.where(inside, r, 0.0), -1) / n_valid, -1.0)
+        n_in = jnp.sum(inside, -1)
+        counted = jnp.maximum(jnp.maximum(n_in, MIN_VISIBLE * n_valid), 1)
+        s = (jnp.sum(jnp.where(inside, r, 0.0), -1) / counted
+             * jnp.sqrt(n_in / jnp.maximum(n_valid, 1)))
+        s = jnp.where(fits_, s, -1.0)
         top, idx = jax.lax.top_k(s, k)
         return top, idx, Z_[idx], jnp.stack([cu_[idx], cv_[idx]], -1)
 
@@ -326,8 +365,9 @@ FEATURES = ("contour", "template", "line2d", "lines", "thinness", "elongation", 
 def outline_features(model: ContourModel, response: Array, K: Array, poses: Array, obj: Array,
                      contour: Array, template: Array, lines: Array) -> Array:
     """[P, len(FEATURES)] what a detection's score is calibrated from (:data:`FEATURES`):
-    its contour score and template score (given), the LINE-2D similarity of its full outline
-    (the nearest stored view's points at poses [P, 4, 4]) with ``response``, the share of its
+    its contour score and template score (given), the LINE-2D similarity of its outline
+    (the nearest stored view's points at poses [P, 4, 4]) with ``response`` (over the points
+    inside the image, as :func:`fit_templates`), the share of its
     correspondence lines that were valid (``lines``, :func:`verify`'s), and the
     outline's shape in the image: thinness (the spread across its main axis, sqrt of the
     smaller eigenvalue of the points' covariance, over the projected radius of the part's
@@ -348,7 +388,8 @@ def outline_features(model: ContourModel, response: Array, K: Array, poses: Arra
         inside = ok & (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
         r = response[b, jnp.clip(vi, 0, H - 1), jnp.clip(ui, 0, W - 1)]
         n = jnp.maximum(jnp.sum(ok), 1)
-        sim = jnp.sum(jnp.where(inside, r, 0.0)) / n
+        sim = jnp.sum(jnp.where(inside, r, 0.0)) / jnp.maximum(jnp.sum(inside),
+                                                             MIN_VISIBLE * n)
         w = ok.astype(jnp.float32) / n
         mean = jnp.sum(w[:, None] * uv, 0)
         c = uv - mean
@@ -374,7 +415,7 @@ def outline_features(model: ContourModel, response: Array, K: Array, poses: Arra
 #: Logistic weights of :func:`calibrated_score` over :func:`score_inputs` (the last entry is
 #: the bias), fitted by ``python -m train.templates_score`` on cell scenes of parts no
 #: evaluation uses (docs/benchmarks.md, "Training-free detection").
-SCORE_WEIGHTS = (0.3172, 0.1149, 0.5048, 2.342, 4.146, 0.6079, 0.7014, -1.262, -9.552)
+SCORE_WEIGHTS = (0.3269, 0.1387, 0.5302, 2.092, 3.954, 0.513, 0.666, -1.508, -8.986)
 
 
 def score_inputs(features: np.ndarray) -> np.ndarray:
