@@ -196,12 +196,13 @@ def test_each_part_gets_its_share_of_the_verified_candidates():
     assert S.select_candidates(np.zeros(0), np.zeros(0, int), 5).tolist() == []
 
 
-@pytest.mark.parametrize("centre", [(150.0, 110.0), (14.0, 110.0), (150.0, 16.0)],
-                         ids=["inside", "cut_left", "cut_top"])
+@pytest.mark.parametrize("centre", [(150.0, 110.0), (14.0, 110.0), (150.0, 16.0), (14.0, 30.0)],
+                         ids=["inside", "cut_left", "cut_top", "cut_corner"])
 def test_fit_finds_the_template_depth_and_centre_of_a_rendered_box(centre):
     """The box rendered at a template's rotation, inside the image or cut by its left or top
     side (about a third of it outside: its proposal is the visible part's box, whose area
-    alone would put it 20 % too far)."""
+    alone would put it 20 % too far), or by both, the top only a little (the less cut extent
+    sets the distance)."""
     mesh = _box_mesh()
     contours = C.mesh_contours(mesh, num_views=100, num_points=200)
     t = S.shape_templates(contours, SMALL)
@@ -220,8 +221,8 @@ def test_fit_finds_the_template_depth_and_centre_of_a_rendered_box(centre):
     # The rendered rotation (or a symmetric one) is among the best templates, with the distance
     # and centre it was rendered at. (A box's outline is the same rectangle or hexagon from
     # many views: several templates fit a clean render perfectly, and verification decides;
-    # more of them fit the part of it a cut box shows.) The best template is at the distance.
-    assert abs(float(depth[0, 0]) - 420.0) < 0.08 * 420.0
+    # more of them fit the part of it a cut box shows.) The best template is near the distance.
+    assert abs(float(depth[0, 0]) - 420.0) < 0.1 * 420.0
     near = [i for i in range(64)
             if _angle(t["rotations"][int(idx[0, i])].astype(np.float64), R, BOX_SYMMETRIES) < 5]
     assert near, [int(i) for i in idx[0]]

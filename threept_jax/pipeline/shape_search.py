@@ -236,7 +236,8 @@ def fit_templates(response: Array, boxes: Array, xy: Array, bins: Array, valid: 
     square root of the share inside: part of an outline fits the image by chance more often
     than all of it, and at the full mean the fits of cut parts took the verification's places
     from whole parts (docs/benchmarks.md, "Parts cut by the image's side"). A proposal in a
-    corner keeps the area's distance (neither extent is whole)."""
+    corner (one side and its neighbour) is taken to be cut less along one of them: the nearer
+    of its two extents' distances, the template against its two far sides."""
     fx, fy = K[0, 0], K[1, 1]
     H, W = response.shape[1:]
     big = jnp.float32(1e9)
@@ -248,13 +249,15 @@ def fit_templates(response: Array, boxes: Array, xy: Array, bins: Array, valid: 
     right, bottom = x0 + bw >= W - BORDER_PX, y0 + bh >= H - BORDER_PX
     cut_x = (left ^ right) & ~top & ~bottom  # cut on the left or right: its height is whole
     cut_y = (top ^ bottom) & ~left & ~right
-    Z = jnp.where(cut_x, fy * size[:, 1] / jnp.maximum(bh, 1.0),
-                  jnp.where(cut_y, fx * size[:, 0] / jnp.maximum(bw, 1.0),
-                            jnp.sqrt(fx * size[:, 0] * fy * size[:, 1]
-                                     / jnp.maximum(bw * bh, 1.0))))  # [B, R]
+    corner = (left ^ right) & (top ^ bottom)
+    z_h, z_w = fy * size[:, 1] / jnp.maximum(bh, 1.0), fx * size[:, 0] / jnp.maximum(bw, 1.0)
+    Z = jnp.where(cut_x, z_h, jnp.where(cut_y, z_w, jnp.where(
+        corner, jnp.minimum(z_h, z_w),
+        jnp.sqrt(fx * size[:, 0] * fy * size[:, 1] / jnp.maximum(bw * bh, 1.0)))))  # [B, R]
     pw, ph = fx * size[:, 0] / Z, fy * size[:, 1] / Z
-    tx = jnp.where(cut_x & left, x0 + bw - pw, jnp.where(cut_x & right, x0, x0 + (bw - pw) / 2))
-    ty = jnp.where(cut_y & top, y0 + bh - ph, jnp.where(cut_y & bottom, y0, y0 + (bh - ph) / 2))
+    ax, ay = cut_x | corner, cut_y | corner
+    tx = jnp.where(ax & left, x0 + bw - pw, jnp.where(ax & right, x0, x0 + (bw - pw) / 2))
+    ty = jnp.where(ay & top, y0 + bh - ph, jnp.where(ay & bottom, y0, y0 + (bh - ph) / 2))
     cw = jnp.clip(tx + pw, 0, W) - jnp.clip(tx, 0, W)  # the template's box inside the image
     ch = jnp.clip(ty + ph, 0, H) - jnp.clip(ty, 0, H)
     inter = (jnp.maximum(jnp.minimum(tx + pw, x0 + bw) - jnp.maximum(tx, x0), 0)
