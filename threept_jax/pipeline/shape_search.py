@@ -13,8 +13,8 @@ every learned detector must beat). Four stages per image:
    the image plane) are fitted to each proposal: the template's box fixes the distance (its
    area against the proposal's, or its extent along the image side that a proposal there
    touches: a part cut by the image's side; inside the depth range, the aspect within
-   ``box_fit`` IoU) and the centre, and the template scores by the LINE-2D orientation similarity of its outline
-   with the image's gradients (:func:`orientation_response`: quantised orientations spread
+   ``box_fit`` IoU) and the centre, and the template scores by the LINE-2D orientation
+   similarity of its outline with the image's gradients (:func:`orientation_response`: quantised orientations spread
    over a few pixels, Hinterstoisser et al., PAMI 2012). Each part keeps its best
    ``per_proposal`` templates per proposal, proposals thinned by NMS.
 3. **Verification** (:func:`verify`): ``candidates`` poses of the image, an equal share per
@@ -215,6 +215,14 @@ BORDER_PX = 3.0
 MIN_VISIBLE = 0.5
 
 
+def _visible_mean(values: Array, inside: Array, n_valid: Array) -> Array:
+    """Mean of ``values`` [..., n] over the outline points ``inside`` the image [..., n], over
+    at least :data:`MIN_VISIBLE` of the ``n_valid`` [...] points of the whole outline (and at
+    least one)."""
+    counted = jnp.maximum(jnp.maximum(jnp.sum(inside, -1), MIN_VISIBLE * n_valid), 1)
+    return jnp.sum(jnp.where(inside, values, 0.0), -1) / counted
+
+
 @functools.partial(jax.jit, static_argnames=("box_fit", "k"))
 def fit_templates(response: Array, boxes: Array, xy: Array, bins: Array, valid: Array,
                   K: Array, depth_range: Array, box_fit: float, k: int):
@@ -247,15 +255,14 @@ def fit_templates(response: Array, boxes: Array, xy: Array, bins: Array, valid: 
     x0, y0, bw, bh = (boxes[:, i:i + 1] for i in range(4))  # [B, 1]
     left, top = x0 <= BORDER_PX, y0 <= BORDER_PX
     right, bottom = x0 + bw >= W - BORDER_PX, y0 + bh >= H - BORDER_PX
-    cut_x = (left ^ right) & ~top & ~bottom  # cut on the left or right: its height is whole
-    cut_y = (top ^ bottom) & ~left & ~right
-    corner = (left ^ right) & (top ^ bottom)
+    # Cut along x: it touches the left or the right side, not both (nor the top and bottom
+    # both); its template is put against the far side. Likewise along y.
+    ax = (left ^ right) & ~(top & bottom)
+    ay = (top ^ bottom) & ~(left & right)
     z_h, z_w = fy * size[:, 1] / jnp.maximum(bh, 1.0), fx * size[:, 0] / jnp.maximum(bw, 1.0)
-    Z = jnp.where(cut_x, z_h, jnp.where(cut_y, z_w, jnp.where(
-        corner, jnp.minimum(z_h, z_w),
-        jnp.sqrt(fx * size[:, 0] * fy * size[:, 1] / jnp.maximum(bw * bh, 1.0)))))  # [B, R]
-    pw, ph = fx * size[:, 0] / Z, fy * size[:, 1] / Z
-    ax, ay = cut_x | corner, cut_y | corner
+    Z = jnp.where(ax & ay, jnp.minimum(z_h, z_w), jnp.where(ax, z_h, jnp.where(
+        ay, z_w, jnp.sqrt(fx * size[:, 0] * fy * size[:, 1] / jnp.maximum(bw * bh, 1.0)))))
+    pw, ph = fx * size[:, 0] / Z, fy * size[:, 1] / Z  # [B, R]
     tx = jnp.where(ax & left, x0 + bw - pw, jnp.where(ax & right, x0, x0 + (bw - pw) / 2))
     ty = jnp.where(ay & top, y0 + bh - ph, jnp.where(ay & bottom, y0, y0 + (bh - ph) / 2))
     cw = jnp.clip(tx + pw, 0, W) - jnp.clip(tx, 0, W)  # the template's box inside the image
@@ -275,10 +282,8 @@ def fit_templates(response: Array, boxes: Array, xy: Array, bins: Array, valid: 
         v = jnp.round(cv_[:, None] + xy[..., 1] * fy / Z_[:, None]).astype(jnp.int32)
         inside = valid & (u >= 0) & (u < W) & (v >= 0) & (v < H)
         r = response[bins, jnp.clip(v, 0, H - 1), jnp.clip(u, 0, W - 1)]
-        n_in = jnp.sum(inside, -1)
-        counted = jnp.maximum(jnp.maximum(n_in, MIN_VISIBLE * n_valid), 1)
-        s = (jnp.sum(jnp.where(inside, r, 0.0), -1) / counted
-             * jnp.sqrt(n_in / jnp.maximum(n_valid, 1)))
+        s = (_visible_mean(r, inside, n_valid)
+             * jnp.sqrt(jnp.sum(inside, -1) / jnp.maximum(n_valid, 1)))
         s = jnp.where(fits_, s, -1.0)
         top, idx = jax.lax.top_k(s, k)
         return top, idx, Z_[idx], jnp.stack([cu_[idx], cv_[idx]], -1)
@@ -391,8 +396,7 @@ def outline_features(model: ContourModel, response: Array, K: Array, poses: Arra
         inside = ok & (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
         r = response[b, jnp.clip(vi, 0, H - 1), jnp.clip(ui, 0, W - 1)]
         n = jnp.maximum(jnp.sum(ok), 1)
-        sim = jnp.sum(jnp.where(inside, r, 0.0)) / jnp.maximum(jnp.sum(inside),
-                                                             MIN_VISIBLE * n)
+        sim = _visible_mean(r, inside, n)
         w = ok.astype(jnp.float32) / n
         mean = jnp.sum(w[:, None] * uv, 0)
         c = uv - mean
