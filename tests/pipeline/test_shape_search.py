@@ -239,6 +239,74 @@ def test_fit_finds_the_template_depth_and_centre_of_a_rendered_box(centre):
     assert np.all(np.asarray(score) == -1.0)
 
 
+def _fit_by_loop(response, box, xy, bins, valid, depth_range, box_fit):
+    """[R] the template fit's score of every template in one proposal (xywh), -1 where it does
+    not fit: the rule of ``fit_templates``' docstring in float64 NumPy, one template at a
+    time."""
+    H, W = response.shape[1:]
+    x0, y0, bw, bh = (float(v) for v in box)
+    fx, fy = K[0, 0], K[1, 1]
+    left, right, top, bottom = x0 <= 3, x0 + bw >= W - 3, y0 <= 3, y0 + bh >= H - 3
+    ax, ay = (left != right) and not (top and bottom), (top != bottom) and not (left and right)
+    out = np.full(len(xy), -1.0)
+    for r in range(len(xy)):
+        pts, b = xy[r][valid[r]].astype(np.float64), bins[r][valid[r]]
+        if not len(pts):
+            continue
+        lo, size = pts.min(0), np.maximum(np.ptp(pts, 0), 1e-3)
+        z_h, z_w = fy * size[1] / bh, fx * size[0] / bw
+        Z = (min(z_h, z_w) if ax and ay else z_h if ax else z_w if ay
+             else math.sqrt(fx * size[0] * fy * size[1] / (bw * bh)))
+        pw, ph = fx * size[0] / Z, fy * size[1] / Z
+        tx = (x0 + bw - pw if left else x0) if ax else x0 + (bw - pw) / 2
+        ty = (y0 + bh - ph if top else y0) if ay else y0 + (bh - ph) / 2
+        cw = np.clip(tx + pw, 0, W) - np.clip(tx, 0, W)
+        ch = np.clip(ty + ph, 0, H) - np.clip(ty, 0, H)
+        inter = (max(min(tx + pw, x0 + bw) - max(tx, x0), 0)
+                 * max(min(ty + ph, y0 + bh) - max(ty, y0), 0))
+        if (inter / (cw * ch + bw * bh - inter) < box_fit or cw * ch < 0.5 * pw * ph
+                or not depth_range[0] <= Z <= depth_range[1]):
+            continue
+        u = np.round(tx + (pts[:, 0] - lo[0]) * fx / Z).astype(int)
+        v = np.round(ty + (pts[:, 1] - lo[1]) * fy / Z).astype(int)
+        inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        got = response[b[inside], v[inside], u[inside]]
+        out[r] = (got.sum() / max(inside.sum(), 0.5 * len(pts), 1)
+                  * math.sqrt(inside.sum() / len(pts)))
+    return out
+
+
+def test_fit_scores_every_fitting_template_as_a_loop_over_them_does():
+    """The fit scores only the (proposal, template) pairs that fit, gathered into a list: its
+    best templates and their scores are those of a float64 loop over every template, for
+    proposals inside the image, cut by its sides, of no part and out of the depth range."""
+    mesh = _box_mesh()
+    t = S.shape_templates(C.mesh_contours(mesh, num_views=100, num_points=200), SMALL)
+    T = _pose(Rotation.from_euler("xyz", [25, -10, 40], degrees=True).as_matrix(),
+              (150.0, 110.0), 420.0)
+    response = S.orientation_response(_render([(mesh, T)], _background()))
+    boxes = np.array([[112, 78, 80, 66], [0, 60, 40, 70], [280, 0, 40, 30], [0, 0, 60, 45],
+                      [30, 150, 150, 60], [140, 100, 8, 8]], np.float32)
+    depth_range = np.array([300.0, 600.0])
+    k = 16
+    score, idx, *_ = S.fit_templates(
+        jnp.asarray(response), jnp.asarray(boxes), t["xy"], t["bins"], t["valid"],
+        jnp.asarray(K, jnp.float32), jnp.asarray(depth_range, jnp.float32), box_fit=0.6, k=k)
+    score, idx = np.asarray(score), np.asarray(idx)
+    fitted = 0
+    for b, box in enumerate(boxes):
+        want = _fit_by_loop(response, box, t["xy"], t["bins"], t["valid"], depth_range, 0.6)
+        fitted += int(np.sum(want > -1))
+        best = np.sort(want)[::-1][:k]
+        # float32 against float64: a point's pixel may round the other way (1/48 of a score).
+        np.testing.assert_allclose(score[b], best, atol=0.045, err_msg=str(b))
+        ok = score[b] > -1
+        np.testing.assert_allclose(want[idx[b][ok]], score[b][ok], atol=0.045)
+        assert np.all(want[idx[b][~ok]] == -1)
+    assert 0 < fitted < len(boxes) * len(t["xy"])  # some pairs fit, not all
+    assert np.all(score[5] == -1)  # an 8 px box is out of the depth range
+
+
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory):
     """A cache folder whose contour models the scene's detector writes and others read."""
