@@ -306,8 +306,6 @@ def _placements(hw: tuple[int, int], boxes: Array, xy: Array, valid: Array, K: A
     return cu, cv, Z, fits
 
 
-
-
 @jax.jit
 def _fitting_pairs(fits: Array) -> tuple[Array, Array]:
     """The flat indices [B * R] of the (proposal, template) pairs that fit [B, R], first, then
@@ -350,8 +348,8 @@ def _best(scores: Array, cu: Array, cv: Array, Z: Array, k: int):
     """Each proposal's best ``k`` of the fit's ``scores`` [B, R] (-1: no fit), as
     :func:`fit_templates` returns them."""
     top, idx = jax.lax.top_k(scores, k)
-    pick = lambda a: jnp.take_along_axis(a, idx, 1)  # noqa: E731
-    return top, idx, pick(Z), jnp.stack([pick(cu), pick(cv)], -1)
+    Z, cu, cv = (jnp.take_along_axis(a, idx, 1) for a in (Z, cu, cv))
+    return top, idx, Z, jnp.stack([cu, cv], -1)
 
 
 def box_variants(boxes: np.ndarray, scales: Sequence[float], shift: float) -> np.ndarray:
