@@ -2,8 +2,8 @@
 dry-run on CPU. Covered: the carry, the wheels installed only for modules the device lacks,
 every stage at the tiny size, what comes back, and a second draw that resumes the first
 draw's run. Its dry run trains through ``train/launch.py``, so it also checks what the
-launcher writes for the refiner: loaded by inference with its step options, evaluated by
-``train.eval_refiner``."""
+launcher writes for the refiner: loaded by inference with its step options (the evaluation
+command on a run directory: tests/train/test_refiner_trainer.py)."""
 
 import importlib.util
 import json
@@ -22,7 +22,6 @@ import infer
 from infer.checkpoint import load_refiner
 from threept_jax.data.pretrained import stem_params
 from threept_jax.data.run_dir import RunDir
-from train import eval_refiner
 
 
 def _device():
@@ -69,7 +68,7 @@ def test_bad_input_names_the_fix(tmp_path, monkeypatch):
         device.prepare(records, tmp_path / "carry", 4, 2, wheels=False)
 
 
-def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypatch, capsys):
+def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypatch):
     records = write_refiner_records(tmp_path / "rec", num_objects=2, mesh_seed=0, num_images=6,
                                     splits=("train", "val"), max_faces=600)
     carry = tmp_path / "carry"
@@ -115,7 +114,7 @@ def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypat
     device("unpack", "--files", str(tmp_path / "out1"), "--to", str(run))
     # What came back is the fine-tuning run, an ordinary 3PT-R run that the launcher wrote,
     # started from the frozen one: inference loads it with the step options it was trained
-    # with, and the evaluation command reads it.
+    # with.
     assert RunDir(run, model="refiner").checkpoint_steps() == [2]  # the last one only
     config = RunDir(run, model="refiner").read_config()
     assert config["optim"]["freeze"] == "" and config["init_from"] == frozen["workdir"]
@@ -130,13 +129,6 @@ def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypat
     models = infer.load(refiner=run)
     assert models.detector is None and models.refiner_step == 2
     assert models.refine_settings == settings
-    assert eval_refiner.main(["--workdir", str(run), "--split", "train",
-                              "--num-examples", "2"]) == 0
-    evaluated = json.loads(capsys.readouterr().out)
-    assert evaluated["step"] == 2 and evaluated["eval/num_instances"] >= 1
-    with pytest.raises(SystemExit) as e:
-        eval_refiner.main(["--workdir", str(tmp_path)])
-    assert e.value.code == 2
 
     # The next draws find the run where unpack put it: the launcher (whose resume test_resume
     # covers) is started in a workdir holding it, to go on from its last step in its stage.

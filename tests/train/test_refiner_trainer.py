@@ -15,7 +15,7 @@ from fixtures.training import ROOT, SUBPROCESS_ENV, apply_overrides
 
 from threept_jax.data.run_dir import RunDir
 from threept_jax.models.configs import REFINER_SIZES, RefinerConfig
-from train import run_config
+from train import eval_refiner, run_config
 from train import trainer as trainer_lib
 from train import trainer_refiner as trr
 from train.configs import refiner as refiner_configs
@@ -154,16 +154,20 @@ def test_a_refiner_run_refuses_a_detector_workdir(records, tmp_path):
         trr.RefinerTrainer(small_config(seen), tmp_path, step_cache=STEPS, devices=ONE)
 
 
-def test_evaluation_on_held_out_meshes_says_they_are_unseen(records, tmp_path):
-    """(A run with XFeat as its pretrained stem: tests/scripts/test_device.py, whose dry run
-    trains one frozen, finds its stem equal to the converted weights to the bit, fine-tunes it
-    and evaluates it; tests/models/test_xfeat.py checks those weights against the upstream
-    network's outputs, tests/models/test_refiner.py the stem's projection starting at zero.)"""
+def test_evaluation_on_held_out_meshes_says_they_are_unseen(records, tmp_path, capsys):
+    """Through the evaluation command on a run directory, as a user runs it. (A run with XFeat
+    as its pretrained stem: tests/scripts/test_device.py, whose dry run trains one frozen,
+    finds its stem equal to the converted weights to the bit, fine-tunes it and loads it for
+    inference; tests/models/test_xfeat.py checks those weights against the upstream network's
+    outputs, tests/models/test_refiner.py the stem's projection starting at zero.)"""
     seen, held = records
     c = small_config(seen, **{"eval.data_dir": str(held)})
     trainer = trr.RefinerTrainer(c, tmp_path / "w", step_cache=STEPS, devices=ONE)
-    out = trainer.evaluate()
+    trainer.save()  # the initial weights, as step 0
     trainer.close()
+    assert eval_refiner.main(["--workdir", str(tmp_path / "w"), "--step", "latest"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["step"] == 0
     assert out["eval/unseen_share"] == 1.0
     assert out["eval/num_instances"] > 0
     for k in ("eval/match_within_2px", "eval/ar_mssd_before", "eval/ar_mssd_after_1",
@@ -173,6 +177,9 @@ def test_evaluation_on_held_out_meshes_says_they_are_unseen(records, tmp_path):
     # The val split of the training folder shows the training meshes: not held out.
     assert set(mesh_digests(seen).values()) <= training_digests(seen)
     assert not set(mesh_digests(held).values()) & training_digests(seen)
+    with pytest.raises(SystemExit) as e:  # not a run: the usage error, exit 2
+        eval_refiner.main(["--workdir", str(tmp_path)])
+    assert e.value.code == 2
 
 
 def test_launcher_refuses_a_detector_key_in_a_refiner_config(tmp_path):
