@@ -40,8 +40,9 @@ def _key(path) -> str:
 def load_arrays_into(module: nnx.Module, arrays: dict[str, np.ndarray], what: str,
                      remake: str) -> nnx.Module:
     """``module`` with every state array replaced by ``arrays[path]`` (same shape, cast to the
-    module's dtype); a missing, extra or misshapen array is a ValueError naming it."""
-    state = nnx.state(module)
+    module's dtype); a missing, extra or misshapen array is a ValueError naming it. ``module``
+    may be abstract (``nnx.eval_shape``): nothing is then initialised only to be replaced."""
+    graphdef, state = nnx.split(module)
     leaves, treedef = jax.tree_util.tree_flatten_with_path(state)
     keys = [_key(p) for p, _ in leaves]
     missing, extra = sorted(set(keys) - set(arrays)), sorted(set(arrays) - set(keys))
@@ -57,8 +58,7 @@ def load_arrays_into(module: nnx.Module, arrays: dict[str, np.ndarray], what: st
         if not np.isfinite(a).all():
             raise ValueError(f"{what}: {k} holds NaN or inf; remake it: {remake}")
         new.append(a.astype(leaf.dtype))
-    nnx.update(module, jax.tree_util.tree_unflatten(treedef, new))
-    return module
+    return nnx.merge(graphdef, jax.tree_util.tree_unflatten(treedef, new))
 
 
 def load_xfeat(folder: str | os.PathLike) -> XFeat:
@@ -76,8 +76,11 @@ def load_xfeat(folder: str | os.PathLike) -> XFeat:
         raise ValueError(f"{path} has SHA256 {digest}, SOURCE.json says "
                          f"{source.get('arrays_sha256')}: the file changed since it was "
                          f"converted; remake it: {XFEAT_REMAKE}")
+    # Built abstract: a random initialisation compiled op by op took 17 s (2 cores), paid by
+    # every process that trains or runs the stem, and thrown away.
+    abstract = nnx.eval_shape(lambda: XFeat(rngs=nnx.Rngs(0)))
     with np.load(path) as arrays:
-        return load_arrays_into(XFeat(rngs=nnx.Rngs(0)), dict(arrays), str(path), XFEAT_REMAKE)
+        return load_arrays_into(abstract, dict(arrays), str(path), XFEAT_REMAKE)
 
 
 def stem_params(name: str, folder: str | os.PathLike | None = None) -> dict:

@@ -141,17 +141,21 @@ def fold_batchnorm(model: XFeat) -> XFeat:
     scale or bias). The same function on the pretrained statistics, as plain parameters: what
     detectron2's FrozenBatchNorm does for fine-tuned backbones, so that a stem in a train state
     holds parameters only and fine-tuning does not re-estimate statistics on small batches."""
-    folded = XFeat(folded=True, rngs=nnx.Rngs(0))
+    # Built abstract and filled: every array comes from ``model`` (a random initialisation
+    # compiled op by op took seconds, only to be overwritten).
+    folded = nnx.eval_shape(lambda: XFeat(folded=True, rngs=nnx.Rngs(0)))
     for src, dst in zip(_basic_layers(model), _basic_layers(folded), strict=True):
         s = jax.lax.rsqrt(src.norm.var[...] + src.norm.epsilon)
-        dst.conv.kernel[...] = src.conv.kernel[...] * s
-        dst.conv.bias[...] = -src.norm.mean[...] * s
+        dst.conv.kernel.set_value(src.conv.kernel[...] * s)
+        dst.conv.bias.set_value(-src.norm.mean[...] * s)
     # The plain convolutions: the skip and each head's last layer.
     for name in ("skip1", "block_fusion", "heatmap_head", "keypoint_head"):
         src, dst = getattr(model, name), getattr(folded, name)
         if name != "skip1":
             src, dst = src.layers[-1], dst.layers[-1]
         nnx.update(dst, nnx.state(src))
+    unset = [x for x in jax.tree.leaves(nnx.state(folded)) if isinstance(x, jax.ShapeDtypeStruct)]
+    assert not unset, f"fold_batchnorm left {len(unset)} arrays unset"
     return folded
 
 
