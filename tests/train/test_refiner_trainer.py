@@ -165,7 +165,8 @@ def test_evaluation_on_held_out_meshes_says_they_are_unseen(records, tmp_path, c
     trainer = trr.RefinerTrainer(c, tmp_path / "w", step_cache=STEPS, devices=ONE)
     trainer.save()  # the initial weights, as step 0
     trainer.close()
-    assert eval_refiner.main(["--workdir", str(tmp_path / "w"), "--step", "latest"]) == 0
+    assert eval_refiner.main(["--workdir", str(tmp_path / "w"), "--step", "latest",
+                              "--split", "val", "--num-examples", "5"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["step"] == 0
     assert out["eval/unseen_share"] == 1.0
