@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import pathlib
 import sys
+import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -34,8 +35,9 @@ import jax  # noqa: E402
 from flax import nnx  # noqa: E402
 from flops import cold_and_warm  # noqa: E402
 
-from threept_jax.data.pretrained import load_xfeat  # noqa: E402
+from threept_jax.data.pretrained import load_xfeat, stem_params  # noqa: E402
 from threept_jax.models.refiner import Refiner  # noqa: E402
+from threept_jax.models.xfeat import XFeat  # noqa: E402
 from train.configs import refiner as refiner_configs  # noqa: E402
 from train.run_config import model_config  # noqa: E402
 
@@ -56,6 +58,19 @@ def main(argv=None) -> dict:
                  "of a refiner or adaptation run, e.g. runs/demo/adapted/records (make demo)")
     key = jax.random.key(0)
 
+    # First, while nothing is compiled: the stem's cold load (a refiner training's start) against
+    # what it no longer does, a random initialisation of XFeat and its folded copy op by op.
+    t = time.perf_counter()
+    jax.block_until_ready(stem_params("xfeat"))
+    load_s = time.perf_counter() - t
+    t = time.perf_counter()
+    for folded in (False, True):
+        jax.block_until_ready(nnx.state(XFeat(folded=folded, rngs=nnx.Rngs(0))))
+    init_s = time.perf_counter() - t
+    print(f"stem_params('xfeat') cold {load_s:.2f} s; XFeat and its folded copy initialised at "
+          f"random op by op (the reference: what loading no longer does) {init_s:.2f} s: "
+          f"{load_s / init_s:.2f} x")
+
     cfg = model_config(refiner_configs.get_config("tiny"))
     refiner = Refiner(cfg, rngs=nnx.Rngs(0))
     encode = nnx.jit(lambda m, x: m.encoder(x, layers=cfg.encoder_hooks[:3])["patch_tokens"])
@@ -64,7 +79,8 @@ def main(argv=None) -> dict:
         lambda: encode(refiner, images).block_until_ready(), args.repeats)
     print(f"3PT-R tiny encoder, {args.crops} crops of {cfg.crop_size} px (reference): cold "
           f"{ref_cold:.2f} s, warm {ref_warm * 1e3:.1f} ms")
-    result = {"reference": {"crop": cfg.crop_size, "cold_s": ref_cold, "warm_s": ref_warm}}
+    result = {"reference": {"crop": cfg.crop_size, "cold_s": ref_cold, "warm_s": ref_warm},
+              "stem_load": {"cold_s": load_s, "random_init_s": init_s}}
 
     xfeat = load_xfeat(ROOT / "models" / "xfeat")
     forward = nnx.jit(lambda m, x: m(x)["features"])
