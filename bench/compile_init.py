@@ -1,12 +1,14 @@
 """Compile time of a training run's jitted initialisation (issue 39), with and without
-``train.trainer.FAST_COMPILE_OPTIONS``.
+``train.trainer.FAST_COMPILE_OPTIONS``, and of a fine-tuning run's start.
 
 For the detector and the refiner of a training config (``tiny`` by default), the trainer's
 ``init_state`` (every parameter drawn, the optimizer state made) is jitted twice in fresh
 functions: with XLA's default options (the reference, same process) and with the fast-compile
-options the trainer uses. Printed per model: cold seconds (lowering and compilation) and warm
-seconds of one run of each, and the ratio of the compile times. Run it alone: the figures are
-wall time on this machine's cores.
+options the trainer uses. A run with ``init_from`` draws nothing: it starts from the loaded
+parameters with ``fresh_state`` (the optimizer state alone), timed the same way on the drawn
+parameters. Printed per model: cold seconds (lowering and compilation) and warm seconds of one
+run of each, and the ratios of the compile times. Run it alone: the figures are wall time on
+this machine's cores.
 
     python bench/compile_init.py [--config tiny]
 """
@@ -24,19 +26,23 @@ from threept_jax.models.refiner import Refiner
 from train import run_config
 from train.configs import detector as detector_configs
 from train.configs import refiner as refiner_configs
-from train.trainer import FAST_COMPILE_OPTIONS, init_state, make_optimizer
+from train.trainer import FAST_COMPILE_OPTIONS, fresh_state, init_state, make_optimizer
 
 
-def measure(make_model, config, options) -> tuple[float, float]:
-    """(cold s, warm s) of the jitted ``init_state`` compiled with ``options``."""
+def measure(make_model, config, options, params=None) -> tuple[float, float, dict]:
+    """(cold s, warm s, the state) of the jitted ``init_state`` compiled with ``options``, or
+    with ``params`` of ``fresh_state(params)`` (a fine-tuning run's start)."""
     tx, _ = make_optimizer(config.optim.to_dict(), int(config.total_steps))
-    init = jax.jit(lambda: init_state(make_model, tx), compiler_options=options)
+    if params is None:
+        fn, args = jax.jit(lambda: init_state(make_model, tx), compiler_options=options), ()
+    else:
+        fn, args = jax.jit(lambda p: fresh_state(p, tx), compiler_options=options), (params,)
     start = time.perf_counter()
-    compiled = init.lower().compile()
+    compiled = fn.lower(*args).compile()
     cold = time.perf_counter() - start
     start = time.perf_counter()
-    jax.block_until_ready(compiled())
-    return cold, time.perf_counter() - start
+    state = jax.block_until_ready(compiled(*args))
+    return cold, time.perf_counter() - start, state
 
 
 def main() -> None:
@@ -54,11 +60,15 @@ def main() -> None:
         def make_model(cfg=cfg, cls=cls):
             return cls(cfg, rngs=nnx.Rngs(0))
 
-        ref_cold, ref_warm = measure(make_model, config, None)
-        fast_cold, fast_warm = measure(make_model, config, FAST_COMPILE_OPTIONS)
+        ref_cold, ref_warm, _ = measure(make_model, config, None)
+        fast_cold, fast_warm, state = measure(make_model, config, FAST_COMPILE_OPTIONS)
+        start_cold, start_warm, _ = measure(make_model, config, FAST_COMPILE_OPTIONS,
+                                            state["params"])
         print(f"{name:9s} default: compile {ref_cold:5.1f} s, run {ref_warm:.3f} s | "
               f"fast-compile: compile {fast_cold:5.1f} s, run {fast_warm:.3f} s | "
-              f"compile ratio {fast_cold / ref_cold:.2f}")
+              f"compile ratio {fast_cold / ref_cold:.2f} | init_from start: compile "
+              f"{start_cold:5.2f} s, run {start_warm:.3f} s, ratio to the fast init "
+              f"{start_cold / fast_cold:.2f}")
 
 
 if __name__ == "__main__":

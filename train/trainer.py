@@ -131,7 +131,12 @@ def init_state(make_model: Callable[[], nnx.Module], tx: optax.GradientTransform
     if jax.tree.leaves(rest):
         raise ValueError(f"{type(model).__name__} holds non-parameter state, which the trainer "
                          "does not carry; extend the train state")
-    params = nnx.to_pure_dict(params)
+    return fresh_state(nnx.to_pure_dict(params), tx)
+
+
+def fresh_state(params: Any, tx: optax.GradientTransformation) -> dict[str, Any]:
+    """``{"step": 0, "params", "opt_state"}`` of a run starting at ``params``: the optimizer's
+    state at its start (AdamW's moments are zeros whatever the parameters' values)."""
     return {"step": jax.numpy.zeros((), jax.numpy.int32), "params": params,
             "opt_state": tx.init(params)}
 
@@ -142,7 +147,9 @@ class CompiledStep:
 
     ``jitted`` is the ``jax.jit`` object itself (``jitted(state, batch)``, or
     ``jitted(state, batch, assets)`` with the placed ``assets`` when the step reads some), for
-    ahead-of-time ``lower(...).compile()`` in benchmarks; ``step`` binds the assets.
+    ahead-of-time ``lower(...).compile()`` in benchmarks; ``step`` binds the assets. ``init()``
+    is a fresh state at random parameters; ``start(params)`` one at given parameters
+    (``init_from``), without compiling or running the random initialisation.
     """
 
     graphdef: nnx.GraphDef
@@ -152,6 +159,7 @@ class CompiledStep:
     step: Callable[[Any, Any], Any]
     schedule: optax.Schedule
     trace_counter: list[int]
+    start: Callable[[Any], Any]
     jitted: Any = None
     assets: Any = None
 
@@ -187,8 +195,11 @@ def compile_step(make_model: Callable[[], nnx.Module], step_fn: Callable, tx, sc
     # The initialisation runs once: compiled without LLVM's optimisations (the refiner's tiny
     # config: 13.5 s -> 4.9 s to compile on 2 CPU cores, 0.01 s -> 0.05 s to run).
     init_jit = jax.jit(init, out_shardings=shardings, compiler_options=FAST_COMPILE_OPTIONS)
+    start = jax.jit(functools.partial(fresh_state, tx=tx), in_shardings=(shardings["params"],),
+                    out_shardings=shardings, donate_argnums=0,
+                    compiler_options=FAST_COMPILE_OPTIONS)
     return CompiledStep(graphdef, abstract_state, shardings, init_jit, step, schedule, counter,
-                        jitted=jitted, assets=placed)
+                        start, jitted=jitted, assets=placed)
 
 
 class StepCache:
@@ -289,10 +300,10 @@ class Trainer:
             async_save=config.checkpoint.async_save)
         latest = self.checkpointer.latest_step()
         if latest is None:
-            self.state = self.compiled.init()
             if config.init_from:
-                self.state["params"] = self._params_from(config.init_from)
+                self.state = self.compiled.start(self._params_from(config.init_from))
             else:
+                self.state = self.compiled.init()
                 self.state["params"] = self.pretrained_params(self.state["params"])
             self.start_step = 0
         else:

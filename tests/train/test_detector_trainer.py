@@ -371,6 +371,12 @@ def test_init_from_starts_a_fresh_run_with_the_source_runs_best_parameters(toy, 
                                  devices=jax.devices()[:1], step_cache=STEPS)
     same = jax.tree.map(np.array_equal, _params_np(scratch), trained)
     assert not all(jax.tree.leaves(same))  # the check above can tell the two apart
+    # The optimizer starts fresh: AdamW's moments and every count at zero, in the layout of a
+    # run from scratch (a checkpoint of either restores into the other).
+    assert jax.tree.structure(tuned.state["opt_state"]) == jax.tree.structure(
+        scratch.state["opt_state"])
+    assert all(not np.any(np.asarray(x)) for x in jax.tree.leaves(tuned.state["opt_state"]))
+    assert int(tuned.state["step"]) == 0
     tuned.close()
     scratch.close()
     other = small_config(toy, init_from=str(tmp_path / "source"), **{"model.variant": "tiny/16"})
