@@ -26,8 +26,8 @@ jax.config.update("jax_num_cpu_devices", 4)
 # 18.7 s, the full-image detection's 18.7 -> 12.9 s, the checkpoint loaders' 12.9 -> 6.5 s, the
 # ViT's 19.7 -> 14.2 s, the onboarder's 19.2 -> 15.5 s, the campaign's 77.1 -> 68.4 s, the
 # templates detector's 49.6 -> 44.0 s, the shipped detector's guard 62.8 -> 58.0 s (120 -> 180 s
-# before the rasterizer was exempt), the mesh kinds' 34.4 -> 31.3 s, and 0-3 s less or the same
-# for each of 30 smaller modules (docs/testing.md).
+# before the rasterizer was exempt), the mesh kinds' 34.4 -> 31.3 s, and 1-3 s less each for
+# 9 smaller modules, within the noise (1 s less to 0.7 s more) for 18 more (docs/testing.md).
 #: Modules that compile every program optimised: the noise ladder runs what it compiles many
 #: times (alone 106.8 -> 125.5 s unoptimised), and the rasterizer's tests compare programs of
 #: one renderer to float32 rounding (its leading-dimension test fails by 3e-6 relative when its
