@@ -16,6 +16,7 @@ this machine's cores.
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 
 import jax
@@ -29,20 +30,15 @@ from train.configs import refiner as refiner_configs
 from train.trainer import FAST_COMPILE_OPTIONS, fresh_state, init_state, make_optimizer
 
 
-def measure(make_model, config, options, params=None) -> tuple[float, float, dict]:
-    """(cold s, warm s, the state) of the jitted ``init_state`` compiled with ``options``, or
-    with ``params`` of ``fresh_state(params)`` (a fine-tuning run's start)."""
-    tx, _ = make_optimizer(config.optim.to_dict(), int(config.total_steps))
-    if params is None:
-        fn, args = jax.jit(lambda: init_state(make_model, tx), compiler_options=options), ()
-    else:
-        fn, args = jax.jit(lambda p: fresh_state(p, tx), compiler_options=options), (params,)
+def measure(fn, *args) -> tuple[float, float, dict]:
+    """(cold s, warm s, the output) of the jitted ``fn`` on ``args``: lowering and compiling,
+    then one run."""
     start = time.perf_counter()
     compiled = fn.lower(*args).compile()
     cold = time.perf_counter() - start
     start = time.perf_counter()
-    state = jax.block_until_ready(compiled(*args))
-    return cold, time.perf_counter() - start, state
+    out = jax.block_until_ready(compiled(*args))
+    return cold, time.perf_counter() - start, out
 
 
 def main() -> None:
@@ -60,10 +56,14 @@ def main() -> None:
         def make_model(cfg=cfg, cls=cls):
             return cls(cfg, rngs=nnx.Rngs(0))
 
-        ref_cold, ref_warm, _ = measure(make_model, config, None)
-        fast_cold, fast_warm, state = measure(make_model, config, FAST_COMPILE_OPTIONS)
-        start_cold, start_warm, _ = measure(make_model, config, FAST_COMPILE_OPTIONS,
-                                            state["params"])
+        tx, _ = make_optimizer(config.optim.to_dict(), int(config.total_steps))
+        init = functools.partial(init_state, make_model, tx)
+        ref_cold, ref_warm, _ = measure(jax.jit(init))
+        fast_cold, fast_warm, state = measure(
+            jax.jit(init, compiler_options=FAST_COMPILE_OPTIONS))
+        start_cold, start_warm, _ = measure(
+            jax.jit(functools.partial(fresh_state, tx=tx), compiler_options=FAST_COMPILE_OPTIONS),
+            state["params"])
         print(f"{name:9s} default: compile {ref_cold:5.1f} s, run {ref_warm:.3f} s | "
               f"fast-compile: compile {fast_cold:5.1f} s, run {fast_warm:.3f} s | "
               f"compile ratio {fast_cold / ref_cold:.2f} | init_from start: compile "

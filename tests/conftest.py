@@ -18,16 +18,8 @@ jax.config.update("jax_num_cpu_devices", 4)
 # So every module compiles with FAST_COMPILE_OPTIONS (no LLVM optimisation), its eager ``jnp``
 # operations and random initialisations too, but for the programs of OPTIMISED (and of its
 # FAST_BUT entry), and for the modules of OPTIMISED_MODULES, which compile everything at XLA's
-# default level. Each module measured alone on 2 cores, A/B: the refiner trainer's tests 182 ->
-# 136 s, the inference loop's 166 -> 137 s, the detector trainer's 134 -> 121 s, adapt's 230 ->
-# 209 s; (2026-11-28) the tracking command's 50 -> 37 s, the BOP runner's 55 -> 39 s, the
-# refine API's 86 -> 45 s, the detect API's 68 -> 43 s; (2026-11-29) the XFeat port's 14.4 ->
-# 6.9 s; (2026-11-30) the refiner network's 40.6 -> 26.7 s, the detector network's 26.4 ->
-# 18.7 s, the full-image detection's 18.7 -> 12.9 s, the checkpoint loaders' 12.9 -> 6.5 s, the
-# ViT's 19.7 -> 14.2 s, the onboarder's 19.2 -> 15.5 s, the campaign's 77.1 -> 68.4 s, the
-# templates detector's 49.6 -> 44.0 s, the shipped detector's guard 62.8 -> 58.0 s (120 -> 180 s
-# before the rasterizer was exempt), the mesh kinds' 34.4 -> 31.3 s, and 1-3 s less each for
-# 9 smaller modules, within the noise (1 s less to 0.7 s more) for 18 more (docs/testing.md).
+# default level. Each module was measured alone both ways on 2 cores; the figures are in
+# docs/testing.md (2026-11-30, sixth session, and the sessions before).
 #: Modules that compile every program optimised: the noise ladder runs what it compiles many
 #: times (alone 106.8 -> 125.5 s unoptimised), and the rasterizer's tests compare programs of
 #: one renderer to float32 rounding (its leading-dimension test fails by 3e-6 relative when its
