@@ -15,11 +15,12 @@ from train.trainer import FAST_COMPILE_OPTIONS  # noqa: E402
 jax.config.update("jax_num_cpu_devices", 4)
 
 # Most of the suite's time is XLA compiling programs that then run a few times (docs/testing.md).
-# So every module compiles with FAST_COMPILE_OPTIONS (no LLVM optimisation), its eager ``jnp``
-# operations and random initialisations too, but for the programs of OPTIMISED (and of its
-# FAST_BUT entry), and for the modules of OPTIMISED_MODULES, which compile everything at XLA's
-# default level. Each module was measured alone both ways on 2 cores; the figures are in
-# docs/testing.md (2026-11-30, sixth session, and the sessions before).
+# So every module compiles with FAST_COMPILE_OPTIONS (no LLVM optimisation, XLA:CPU's loop
+# emitters), its eager ``jnp`` operations and random initialisations too, but for the programs
+# of OPTIMISED (and of its FAST_BUT entry), and for the modules of OPTIMISED_MODULES, which
+# compile everything at XLA's default level. Each module was measured alone both ways on 2
+# cores; the figures are in docs/testing.md (2026-11-30, seventh session, and the sessions
+# before).
 #: Modules that compile every program optimised: the noise ladder runs what it compiles many
 #: times (alone 106.8 -> 125.5 s unoptimised), and the rasterizer's tests compare programs of
 #: one renderer to float32 rounding (its leading-dimension test fails by 3e-6 relative when its

@@ -165,9 +165,11 @@ class CompiledStep:
 
 
 #: XLA options for a program that runs so few times that compiling it fast matters more than
-#: the code it makes: no LLVM optimisation. The jitted initialisation (:func:`compile_step`) runs
-#: once per run; the tests use them too (tests/conftest.py).
-FAST_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
+#: the code it makes: no LLVM optimisation, and on CPU the classic loop emitters instead of the
+#: MLIR fusion emitters, which take longer to compile and make faster code (a CPU-only option;
+#: other backends ignore it). The jitted initialisation (:func:`compile_step`) runs once per
+#: run; the tests use them too (tests/conftest.py).
+FAST_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
 
 
 def compile_step(make_model: Callable[[], nnx.Module], step_fn: Callable, tx, schedule,
