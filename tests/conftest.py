@@ -21,20 +21,21 @@ jax.config.update("jax_num_cpu_devices", 4)
 # compile everything at XLA's default level. Each module was measured alone both ways on 2
 # cores; the figures are in docs/testing.md (2026-11-30, seventh session, and the sessions
 # before).
-#: Modules that compile every program optimised: the noise ladder runs what it compiles many
-#: times (alone 106.8 -> 125.5 s unoptimised), and the rasterizer's tests compare programs of
-#: one renderer to float32 rounding (its leading-dimension test fails by 3e-6 relative when its
+#: Modules that compile every program optimised: the rasterizer's tests compare programs of one
+#: renderer to float32 rounding (its leading-dimension test fails by 3e-6 relative when its
 #: vmapped program is unoptimised).
-OPTIMISED_MODULES = ("tests/pipeline/test_refine_ladder.py", "tests/render/test_raster.py")
+OPTIMISED_MODULES = ("tests/render/test_raster.py",)
 #: Programs that every module but OPTIMISED_MODULES still compiles optimised: they run far more
 #: than they compile. The rasterizer renders onboarding banks and contour models (1000 views a mesh):
 #: unoptimised, a contour model took 5.3 s a mesh against 2.0 s (warm, 2 cores).
 OPTIMISED = ("jit__render_impl",)
 #: Modules that compile every program fast but these, which they run hundreds of times: the
-#: learning tests' train steps (100 and 400 steps). Their evaluations, initialisations and
-#: eager operations run once or twice (test_refiner_learning's evaluation took 19 s to compile
-#: optimised).
-FAST_BUT = {"tests/train/test_refiner_learning.py": ("jit_train_step",),
+#: learning tests' train steps (100 and 400 steps) and the noise ladder's loop (10 ladders; the
+#: module alone 177 -> 152 s against compiling everything optimised). Their evaluations,
+#: initialisations and eager operations run once or twice (test_refiner_learning's evaluation
+#: took 19 s to compile optimised).
+FAST_BUT = {"tests/pipeline/test_refine_ladder.py": ("jit__refine",),
+            "tests/train/test_refiner_learning.py": ("jit_train_step",),
             "tests/train/test_learning.py": ("jit_train_step",),
             "tests/train/test_cell_detector.py": ("jit_step",)}
 #: The programs the running module compiles optimised; None: all of them (OPTIMISED_MODULES).
