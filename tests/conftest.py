@@ -17,7 +17,7 @@ jax.config.update("jax_num_cpu_devices", 4)
 # Most of the suite's time is XLA compiling programs that then run a few times (docs/testing.md).
 # So every module compiles with FAST_COMPILE_OPTIONS (no LLVM optimisation, XLA:CPU's loop
 # emitters), its eager ``jnp`` operations and random initialisations too, but for the programs
-# of OPTIMISED (and of its FAST_BUT entry), and for the modules of OPTIMISED_MODULES, which
+# of OPTIMISED (and of RUN_MANY in the modules of FAST_BUT), and for the modules of OPTIMISED_MODULES, which
 # compile everything at XLA's default level. Each module was measured alone both ways on 2
 # cores; the figures are in docs/testing.md (2026-11-30, seventh session, and the sessions
 # before).
@@ -25,19 +25,20 @@ jax.config.update("jax_num_cpu_devices", 4)
 #: renderer to float32 rounding (its leading-dimension test fails by 3e-6 relative when its
 #: vmapped program is unoptimised).
 OPTIMISED_MODULES = ("tests/render/test_raster.py",)
-#: Programs that every module but OPTIMISED_MODULES still compiles optimised: they run far more
-#: than they compile. The rasterizer renders onboarding banks and contour models (1000 views a mesh):
-#: unoptimised, a contour model took 5.3 s a mesh against 2.0 s (warm, 2 cores).
+#: Programs that every module but OPTIMISED_MODULES still compiles optimised (with their own
+#: options: the rasterizer's loop emitters, ``raster.RASTER_COMPILE_OPTIONS``): they run far more
+#: than they compile. The rasterizer renders onboarding banks and contour models (1000 views a
+#: mesh): unoptimised, a contour model took 5.3 s a mesh against 2.0 s (warm, 2 cores).
 OPTIMISED = ("jit__render_impl",)
-#: Modules that compile every program fast but these, which they run hundreds of times: the
-#: learning tests' train steps (100 and 400 steps) and the noise ladder's loop (10 ladders; the
-#: module alone 177 -> 152 s against compiling everything optimised). Their evaluations,
-#: initialisations and eager operations run once or twice (test_refiner_learning's evaluation
-#: took 19 s to compile optimised).
-FAST_BUT = {"tests/pipeline/test_refine_ladder.py": ("jit__refine",),
-            "tests/train/test_refiner_learning.py": ("jit_train_step",),
-            "tests/train/test_learning.py": ("jit_train_step",),
-            "tests/train/test_cell_detector.py": ("jit_step",)}
+#: Modules that compile every program fast but those of RUN_MANY, which they run hundreds of
+#: times: the learning tests' train steps (100 and 400 steps) and the noise ladder's loop (10
+#: ladders; the module alone 177 -> 152 s against compiling everything optimised). Their
+#: evaluations, initialisations and eager operations run once or twice (test_refiner_learning's
+#: evaluation took 19 s to compile optimised). One rule for the four (each has only its own of
+#: RUN_MANY's programs), so that a worker running two of them in a row keeps its caches.
+FAST_BUT = ("tests/pipeline/test_refine_ladder.py", "tests/train/test_refiner_learning.py",
+            "tests/train/test_learning.py", "tests/train/test_cell_detector.py")
+RUN_MANY = ("jit__refine", "jit_train_step", "jit_step")
 #: The programs the running module compiles optimised; None: all of them (OPTIMISED_MODULES).
 _optimised: list[tuple[str, ...] | None] = [None]
 _create_compile_options = _pxla.create_compile_options
@@ -109,7 +110,7 @@ def _module_rule(module: str) -> tuple[str, ...] | None:
     """The programs ``module`` compiles optimised: None for all of them (XLA's default level)."""
     if module in OPTIMISED_MODULES:
         return None
-    return OPTIMISED + FAST_BUT.get(module, ())
+    return OPTIMISED + (RUN_MANY if module in FAST_BUT else ())
 
 
 @pytest.fixture(scope="module", autouse=True)
