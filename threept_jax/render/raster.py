@@ -460,7 +460,7 @@ def _render_impl(
 #: XLA options of the rasterizer's program: on CPU, XLA's classic loop emitters instead of its
 #: MLIR fusion emitters (a CPU-only option; other backends ignore it). Measured on 2 cores, T-LESS
 #: obj 4 at 2048 faces, depth/mask/xyz/normal: 128 x 128 x 64 views compile 1.58 -> 0.87 s, run
-#: 82 ms either way; 640 x 480 x 4 views 1.59 -> 0.83 s, run 60 -> 54 ms (docs/benchmarks.md).
+#: 89 -> 86 ms; 640 x 480 x 4 views 1.59 -> 0.83 s, run 64 -> 52 ms (docs/rendering.md).
 #: JAX takes compiler options on a top-level jit only: inside another transformation's trace
 #: (:func:`render` called under ``jit``, ``vmap``, ``grad``) the program is part of the caller's.
 RASTER_COMPILE_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
