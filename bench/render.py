@@ -11,7 +11,9 @@ outputs depth, mask, xyz and normal, by:
 
 Rows: 128x128 and 512x512 in batches of 64, and 5140 templates (the detector's
 super-Fibonacci grid) at 128x128 end to end: poses to renders on the device, in batches of 64,
-compilation included. Cold = first call (compilation included), warm =
+compilation included. Then the rasterizer's program with its compile options
+(``raster.RASTER_COMPILE_OPTIONS``) against XLA's default, at 128x128 and 640x480: compile
+seconds and warm calls, ratio ours / default. Cold = first call (compilation included), warm =
 median of ``--reps`` calls, alternating between the backends so that both see the same load
 (the machine may be shared).
 
@@ -149,6 +151,31 @@ def main():
             print(f"{name:28s} {j:10.2f} {m:12.2f} {m / j:12.2f} {'':>11s} {'':>15s}")
         else:
             print(f"{name:28s} {j:10.0f} {m:12.0f} {j / m:12.2f} {jc:11.2f} {mc:15.2f}")
+    compile_options(rmesh, mesh, R, args.reps)
+
+
+def compile_options(rmesh, mesh, R, reps):
+    """The rasterizer's program compiled with its options (``raster.RASTER_COMPILE_OPTIONS``:
+    XLA:CPU's loop emitters) against XLA's default (the fusion emitters), the same inputs in
+    this process: compile seconds, then warm calls alternating."""
+    print("rasterizer compile options (ours = RASTER_COMPILE_OPTIONS, reference = XLA default)")
+    for hw, B in (((128, 128), len(R)), ((480, 640), 4)):
+        T, K = views(mesh, R[:B], hw)
+        K = np.broadcast_to(K, (B, 3, 3))  # the program's own layout: one K per view
+        args = (rmesh, jnp.asarray(T), jnp.asarray(K), jnp.float32(1.0), jnp.float32(0.3),
+                jnp.float32(0.02), jnp.float32(45.0))
+        lowered = raster._render_jit.lower(*args, hw=hw, outputs=OUTPUTS,
+                                           tile=raster.default_tile(hw), chunk=None)
+        compiled, seconds = [], []
+        for options in (raster.RASTER_COMPILE_OPTIONS, {"xla_cpu_use_fusion_emitters": True}):
+            t0 = time.perf_counter()
+            compiled.append(lowered.compile(compiler_options=options))
+            seconds.append(time.perf_counter() - t0)
+        _, ours, _, ref = timed_pair(*(lambda c=c, a=args: jax.block_until_ready(c(*a))
+                                       for c in compiled), reps)
+        print(f"  {hw[1]}x{hw[0]} x {B} views: compile {seconds[0]:.2f} s vs {seconds[1]:.2f} s "
+              f"({seconds[0] / seconds[1]:.2f}x), warm {ours * 1e3:.1f} ms vs {ref * 1e3:.1f} ms "
+              f"({ours / ref:.2f}x)")
 
 
 if __name__ == "__main__":

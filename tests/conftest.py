@@ -17,8 +17,8 @@ jax.config.update("jax_num_cpu_devices", 4)
 # Most of the suite's time is XLA compiling programs that then run a few times (docs/testing.md).
 # So every module compiles with FAST_COMPILE_OPTIONS (no LLVM optimisation, XLA:CPU's loop
 # emitters), its eager ``jnp`` operations and random initialisations too, but for the programs
-# of OPTIMISED (and of RUN_MANY in the modules of FAST_BUT), and for the modules of OPTIMISED_MODULES, which
-# compile everything at XLA's default level. Each module was measured alone both ways on 2
+# of OPTIMISED (and of RUN_MANY in the modules of FAST_BUT), and for the modules of
+# OPTIMISED_MODULES, which compile everything at XLA's default level. Each module was measured alone both ways on 2
 # cores; the figures are in docs/testing.md (2026-11-30, seventh session, and the sessions
 # before).
 #: Modules that compile every program optimised: the rasterizer's tests compare programs of one
