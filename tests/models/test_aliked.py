@@ -17,10 +17,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import nnx
+from PIL import Image
 from scipy import ndimage
 
 from threept_jax.data.pretrained import ALIKED_REMAKE, load_aliked, stem_params
-from threept_jax.models.aliked import ALIKED, DeformableConv, sample, upsample
+from threept_jax.models.aliked import (
+    ALIKED,
+    ALIKEDDescriptors,
+    DeformableConv,
+    sample,
+    upsample,
+)
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 FOLDER = ROOT / "models" / "aliked"
@@ -62,6 +69,42 @@ def test_the_port_gives_the_upstream_networks_outputs():
     assert "BSD 3-Clause License" in (FOLDER / "LICENSE").read_text()
     assert "Apache License" in (FOLDER / "LICENSE.wheel").read_text()
     assert source["file"] in (FOLDER / "NOTICE").read_text().replace("\n", " ")
+
+
+def test_matched_directly_the_descriptors_fill_the_refiners_outputs():
+    """ALIKEDDescriptors: SDDH's descriptors at each map pixel's centre in the crop (map pixel
+    (i, j) of 16 on a 64 px crop is crop point (4 j + 1.5, 4 i + 1.5)), or the dense features
+    resized (Pillow's antialiased bilinear resize, the reference) and unit length; the real crop's
+    repeated over the hypotheses; what it has no opinion on is zero."""
+    ref = np.load(REFERENCE)
+    model = load_aliked(FOLDER)
+    real = ref["images"][:, None, :, :64]  # [B=2, V=1, 64, 64, 3]
+    renders = np.random.default_rng(1).integers(0, 255, (2, 3, 1, 64, 64, 3)).astype(np.uint8)
+    corner = jnp.asarray([[[1.5, 1.5], [4 * 15 + 1.5, 4 * 2 + 1.5]]])  # map (0, 0), (2, 15)
+
+    def run(m, a, b, r):
+        features = m(r)["features"]
+        return (ALIKEDDescriptors(m, 16)(a, b), ALIKEDDescriptors(m, 16, sddh=False)(a, b),
+                features, m.descriptors(features, corner))
+
+    sddh, dense, features, want = nnx.jit(run)(model, jnp.asarray(real), jnp.asarray(renders),
+                                                jnp.asarray(renders[1, 2], jnp.float32) / 255)
+    for out in (sddh, dense):
+        assert out["real_desc"].shape == out["render_desc"].shape == (2, 3, 1, 16, 16, 128)
+        assert out["mask_logits"].shape == (2, 3, 1, 16, 16) and out["scores"].shape == (2, 3)
+        assert not np.any(out["scores"]) and not np.any(out["view_scores"])
+        np.testing.assert_allclose(np.linalg.norm(np.asarray(out["real_desc"]), axis=-1), 1.0,
+                                   atol=1e-5)
+        for k in (1, 2):
+            np.testing.assert_array_equal(out["real_desc"][:, k], out["real_desc"][:, 0])
+    got = np.asarray(sddh["render_desc"][1, 2, 0])
+    np.testing.assert_allclose(got[[0, 2], [0, 15]], np.asarray(want)[0], atol=1e-5)
+    # Downsampled with a triangle filter widened by the factor (antialiased), as Pillow's
+    # bilinear resize does.
+    resized = np.stack([np.asarray(Image.fromarray(f, mode="F").resize((16, 16), Image.BILINEAR))
+                        for f in np.moveaxis(np.asarray(features)[0], -1, 0)], -1)
+    resized /= np.linalg.norm(resized, axis=-1, keepdims=True)
+    np.testing.assert_allclose(np.asarray(dense["render_desc"][1, 2, 0]), resized, atol=1e-4)
 
 
 def test_sampling_and_the_deformable_convolution_against_scipy_and_a_loop():

@@ -96,11 +96,13 @@ def test_real_crops_and_renders_share_one_encoder_and_decoder(model, inputs):
 
 def test_conditioned_levels_and_stems_keep_hypotheses_apart_and_streams_siamese(inputs):
     """The lever options (every DPT level of the real crop read from the cross-attention
-    output, a pixel stem, XFeat as a pretrained stem): hypothesis k's outputs still depend on
-    its render alone, and with the cross-attention branches off an identical render still gets
-    the real crop's descriptors exactly."""
+    output, a pixel stem, a pretrained stem: ALIKED, whose stride-1 features are resized to
+    the patch grid and the map; XFeat's stride-8 ones take the same path, and its refiner runs
+    in tests/scripts/test_device.py): hypothesis k's outputs still depend on its render alone,
+    and with the cross-attention branches off an identical render still gets the real crop's
+    descriptors exactly."""
     cfg = get_refiner_config("tiny", conditioned_levels=4, pixel_features=8,
-                             pretrained_stem="xfeat")
+                             pretrained_stem="aliked")
     model = Refiner(cfg, rngs=nnx.Rngs(0))
     # The stem's token projection starts at zero (a fresh network starts as one without the
     # stem); make it read the stem, so that the test covers that path too.

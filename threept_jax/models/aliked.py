@@ -283,3 +283,49 @@ def fold_batchnorm(model: ALIKED) -> ALIKED:
     unset = [x for x in jax.tree.leaves(nnx.state(folded)) if isinstance(x, jax.ShapeDtypeStruct)]
     assert not unset, f"fold_batchnorm left {len(unset)} arrays unset"
     return folded
+
+
+class ALIKEDDescriptors(nnx.Module):
+    """3PT-R's output contract from ALIKED alone, untrained: its descriptors matched directly,
+    the baseline a refiner with this stem must beat (as
+    :class:`threept_jax.models.xfeat.XFeatDescriptors`).
+
+    ``__call__(real [B, V, S, S, 3], renders [B, K, V, S, S, 3])`` (uint8, or float in
+    [0, 1]) -> ``real_desc`` and ``render_desc`` [B, K, V, h, h, dim]: ``sddh=True`` the
+    descriptors of upstream's SDDH head at each map pixel's centre in the crop (pixel (i, j)
+    is the crop point ((j + 0.5) S / h - 0.5, (i + 0.5) S / h - 0.5), the refiner's
+    convention), else the dense feature map resized bilinearly to h and L2-normalised; the
+    real crop's repeated over the K hypotheses; zeros for ``mask_logits`` [B, K, V, h, h],
+    ``view_scores`` [B, K, V] and ``scores`` [B, K]. S: a multiple of 32.
+    """
+
+    def __init__(self, aliked: ALIKED, output_size: int, sddh: bool = True):
+        self.aliked = aliked
+        self.output_size = int(output_size)
+        self.sddh = bool(sddh)
+
+    def __call__(self, real: Array, renders: Array) -> dict[str, Array]:
+        real, renders = jnp.asarray(real), jnp.asarray(renders)
+        b, v, s = real.shape[:3]
+        k, h = renders.shape[1], self.output_size
+        images = jnp.concatenate([real.reshape(b * v, s, s, 3),
+                                  renders.reshape(b * k * v, s, s, 3)])
+        if images.dtype == jnp.uint8:
+            images = images.astype(jnp.float32) / 255.0
+        features = self.aliked(images)["features"]
+        if self.sddh:
+            centres = (jnp.arange(h) + 0.5) * s / h - 0.5
+            yy, xx = jnp.meshgrid(centres, centres, indexing="ij")
+            points = jnp.broadcast_to(jnp.stack([xx, yy], -1).reshape(1, h * h, 2),
+                                      (images.shape[0], h * h, 2))
+            f = self.aliked.descriptors(features, points).reshape(-1, h, h, self.aliked.dim)
+        else:
+            f = unit_vectors(jax.image.resize(features, (features.shape[0], h, h,
+                                                         features.shape[-1]), "bilinear"))
+        real_desc = jnp.broadcast_to(f[:b * v].reshape(b, 1, v, h, h, -1),
+                                     (b, k, v, h, h, f.shape[-1]))
+        return {"real_desc": real_desc,
+                "render_desc": f[b * v:].reshape(b, k, v, h, h, -1),
+                "mask_logits": jnp.zeros((b, k, v, h, h), jnp.float32),
+                "view_scores": jnp.zeros((b, k, v), jnp.float32),
+                "scores": jnp.zeros((b, k), jnp.float32)}

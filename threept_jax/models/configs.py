@@ -299,8 +299,8 @@ class DetectorConfig(_VariantSizes):
         return self.num_prior_views * self.tokens_per_view
 
 
-#: RefinerConfig.pretrained_stem values: none, or XFeat's.
-PRETRAINED_STEMS = ("none", "xfeat")
+#: RefinerConfig.pretrained_stem values: none, XFeat's or ALIKED's.
+PRETRAINED_STEMS = ("none", "xfeat", "aliked")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -333,13 +333,14 @@ class RefinerConfig(_VariantSizes):
         the heads: DPT sees the image only through patch tokens, and a small network does not
         learn where inside a patch an edge lies (measured in docs/training.md, "3PT-R:
         matching on unseen parts per CPU minute"). 0: none, the paper's decoder.
-      pretrained_stem: ``"none"``, or ``"xfeat"``: a pretrained XFeat
-        (:mod:`threept_jax.models.xfeat`, BatchNorms folded) reads every crop; its stride-8
-        features enter twice: resized to the patch grid, through a linear layer (zero at
-        initialisation) added to the patch embeddings, and resized to the map, joined to DPT's
-        output before the heads (as the pixel stem's). Crop sizes in multiples of 32. The
-        trainer loads the pretrained weights into a fresh run (``models/xfeat``);
-        ``optim.freeze = "stem"`` holds them fixed.
+      pretrained_stem: ``"none"``, ``"xfeat"`` or ``"aliked"``: a pretrained XFeat
+        (:mod:`threept_jax.models.xfeat`, stride-8 64-channel features) or ALIKED
+        (:mod:`threept_jax.models.aliked`, ``aliked-n16``, stride-1 128-channel features),
+        BatchNorms folded, reads every crop; its features enter twice: resized to the patch
+        grid, through a linear layer (zero at initialisation) added to the patch embeddings,
+        and resized to the map, joined to DPT's output before the heads (as the pixel stem's).
+        Crop sizes in multiples of 32. The trainer loads the pretrained weights into a fresh
+        run (``models/<stem>``); ``optim.freeze = "stem"`` holds them fixed.
       attention_impl: ``None``/``"xla"``, or ``"cudnn"`` (flash attention, GPU, bf16/fp16).
       remat: rematerialise each encoder, cross-attention and DPT fusion block (and the DPT
         head) in the backward pass.
@@ -375,11 +376,11 @@ class RefinerConfig(_VariantSizes):
         if self.pretrained_stem not in PRETRAINED_STEMS:
             raise ValueError(f"RefinerConfig.pretrained_stem must be one of {PRETRAINED_STEMS}, "
                              f"got {self.pretrained_stem!r}")
-        if self.pretrained_stem == "xfeat" and self.crop_size % 32:
+        if self.pretrained_stem != "none" and self.crop_size % 32:
             m = math.lcm(32, p)  # and of the patch size
-            raise ValueError(f"RefinerConfig.pretrained_stem='xfeat' needs a crop_size in "
-                             f"multiples of 32 (XFeat's coarsest stride), got {self.crop_size}; use "
-                             f"{-(-self.crop_size // m) * m}")
+            raise ValueError(f"RefinerConfig.pretrained_stem={self.pretrained_stem!r} needs a "
+                             f"crop_size in multiples of 32 (the network's coarsest stride), got "
+                             f"{self.crop_size}; use {-(-self.crop_size // m) * m}")
         if self.crop_size % p:
             raise ValueError(
                 f"RefinerConfig.crop_size={self.crop_size} is not a multiple of the patch size "

@@ -30,9 +30,11 @@ view, drawn into the same crops). The network:
    mean over its views.
 
 Two optional stems read the crops themselves (``RefinerConfig``): ``pixel_features``, two
-3 x 3 convolutions joined to DPT's output, and ``pretrained_stem="xfeat"``, XFeat's pretrained
-network (:mod:`threept_jax.models.xfeat`, BatchNorms folded) whose stride-8 features are added
-to the patch embeddings (a linear layer that starts at zero) and joined to DPT's output too.
+3 x 3 convolutions joined to DPT's output, and ``pretrained_stem``, a pretrained network
+(``"xfeat"``: :mod:`threept_jax.models.xfeat`, stride-8 features; ``"aliked"``:
+:mod:`threept_jax.models.aliked`, stride-1 features; BatchNorms folded) whose features are
+added to the patch embeddings (a linear layer that starts at zero) and joined to DPT's output
+too.
 
 Every output of hypothesis k is computed from the real crops and the renders of hypothesis k
 alone (no normalisation or attention across hypotheses), so hypotheses are independent by
@@ -50,6 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
+from threept_jax.models.aliked import ALIKED
 from threept_jax.models.configs import RefinerConfig, get_refiner_config
 from threept_jax.models.dpt import DPT, resize
 from threept_jax.models.heads import unit_vectors
@@ -61,8 +64,12 @@ from threept_jax.models.vit import (
     apply_cross_block,
     count_params,
 )
-from threept_jax.models.xfeat import FEATURES as XFEAT_DIM
 from threept_jax.models.xfeat import XFeat
+
+#: Each pretrained stem (``RefinerConfig.pretrained_stem``): its network in the folded form a
+#: stem trains in, and the channels of its ``features``.
+STEMS = {"xfeat": (lambda rngs: XFeat(folded=True, rngs=rngs), 64),
+         "aliked": (lambda rngs: ALIKED(folded=True, rngs=rngs), 128)}
 
 Array = jax.Array
 
@@ -105,16 +112,18 @@ class Refiner(nnx.Module):
                                         nnx.Conv(cfg.pixel_features, cfg.pixel_features, **conv)])
         else:
             self.pixel_stem = nnx.data(None)
-        if cfg.pretrained_stem == "xfeat":
+        stem_dim = 0
+        if cfg.pretrained_stem in STEMS:
             # A pretrained stem (configs.RefinerConfig.pretrained_stem): its features join the patch
             # embeddings through a linear layer that starts at zero, so a fresh network
             # starts as the one without the stem.
-            self.stem = XFeat(folded=True, rngs=rngs)
-            self.stem_tokens = nnx.Linear(XFEAT_DIM, cfg.width, kernel_init=nnx.initializers.zeros,
+            build, stem_dim = STEMS[cfg.pretrained_stem]
+            self.stem = build(rngs)
+            self.stem_tokens = nnx.Linear(stem_dim, cfg.width, kernel_init=nnx.initializers.zeros,
                                           **kw)
         else:
             self.stem = self.stem_tokens = nnx.data(None)
-        joined = cfg.pixel_features + (XFEAT_DIM if cfg.pretrained_stem == "xfeat" else 0)
+        joined = cfg.pixel_features + stem_dim
         # What the stems give at the map's resolution joins DPT's output by a 3x3 convolution.
         self.pixel_join = nnx.Conv(head_in + joined, head_in, **conv) if joined else nnx.data(None)
         self.desc_head = nnx.Conv(head_in, cfg.descriptor_dim, (1, 1), **kw)
@@ -148,7 +157,8 @@ class Refiner(nnx.Module):
         # One encoder call over the real crops (ordered b, v) and the renders (b, k, v).
         images = jnp.concatenate([_unit_range(real).reshape(n_real, s, s, 3),
                                   _unit_range(renders).reshape(n_pair, s, s, 3)])
-        stem = None if self.stem is None else self.stem(images)["features"]  # [N, S/8, S/8, 64]
+        # XFeat's [N, S/8, S/8, 64], ALIKED's [N, S, S, 128].
+        stem = None if self.stem is None else self.stem(images)["features"]
         offsets = None
         if stem is not None:
             offsets = self.stem_tokens(resize(stem, (g, g)).reshape(n_real + n_pair, g * g, -1))
