@@ -79,16 +79,18 @@ def test_matched_directly_the_descriptors_fill_the_refiners_outputs():
     ref = np.load(REFERENCE)
     model = load_aliked(FOLDER)
     real = ref["images"][:, None, :, :64]  # [B=2, V=1, 64, 64, 3]
-    renders = np.random.default_rng(1).integers(0, 255, (2, 3, 1, 64, 64, 3)).astype(np.uint8)
+    # The real crops uint8, the renders float in [0, 1], as the refiner's evaluation gives them.
+    renders = np.random.default_rng(1).uniform(size=(2, 3, 1, 64, 64, 3)).astype(np.float32)
     corner = jnp.asarray([[[1.5, 1.5], [4 * 15 + 1.5, 4 * 2 + 1.5]]])  # map (0, 0), (2, 15)
 
     def run(m, a, b, r):
-        features = m(r)["features"]
+        features = m(r)["features"]  # a render and the first real crop, in [0, 1]
         return (ALIKEDDescriptors(m, 16)(a, b), ALIKEDDescriptors(m, 16, sddh=False)(a, b),
-                features, m.descriptors(features, corner))
+                features, m.descriptors(features, jnp.concatenate([corner, corner])))
 
-    sddh, dense, features, want = nnx.jit(run)(model, jnp.asarray(real), jnp.asarray(renders),
-                                                jnp.asarray(renders[1, 2], jnp.float32) / 255)
+    sddh, dense, features, want = nnx.jit(run)(
+        model, jnp.asarray(real), jnp.asarray(renders),
+        jnp.stack([jnp.asarray(renders[1, 2, 0]), jnp.asarray(real[0, 0], jnp.float32) / 255]))
     for out in (sddh, dense):
         assert out["real_desc"].shape == out["render_desc"].shape == (2, 3, 1, 16, 16, 128)
         assert out["mask_logits"].shape == (2, 3, 1, 16, 16) and out["scores"].shape == (2, 3)
@@ -99,6 +101,8 @@ def test_matched_directly_the_descriptors_fill_the_refiners_outputs():
             np.testing.assert_array_equal(out["real_desc"][:, k], out["real_desc"][:, 0])
     got = np.asarray(sddh["render_desc"][1, 2, 0])
     np.testing.assert_allclose(got[[0, 2], [0, 15]], np.asarray(want)[0], atol=1e-5)
+    got = np.asarray(sddh["real_desc"][0, 1, 0])
+    np.testing.assert_allclose(got[[0, 2], [0, 15]], np.asarray(want)[1], atol=1e-5)
     # Downsampled with a triangle filter widened by the factor (antialiased), as Pillow's
     # bilinear resize does.
     resized = np.stack([np.asarray(Image.fromarray(f, mode="F").resize((16, 16), Image.BILINEAR))

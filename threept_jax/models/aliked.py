@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from threept_jax.models.heads import unit_vectors
+from threept_jax.models.heads import unit_range, unit_vectors
 
 Array = jax.Array
 
@@ -305,13 +305,11 @@ class ALIKEDDescriptors(nnx.Module):
         self.sddh = bool(sddh)
 
     def __call__(self, real: Array, renders: Array) -> dict[str, Array]:
-        real, renders = jnp.asarray(real), jnp.asarray(renders)
         b, v, s = real.shape[:3]
         k, h = renders.shape[1], self.output_size
-        images = jnp.concatenate([real.reshape(b * v, s, s, 3),
-                                  renders.reshape(b * k * v, s, s, 3)])
-        if images.dtype == jnp.uint8:
-            images = images.astype(jnp.float32) / 255.0
+        # Each to [0, 1] on its own (the real crops may be uint8 and the renders float).
+        images = jnp.concatenate([unit_range(real).reshape(b * v, s, s, 3),
+                                  unit_range(renders).reshape(b * k * v, s, s, 3)])
         features = self.aliked(images)["features"]
         if self.sddh:
             centres = (jnp.arange(h) + 0.5) * s / h - 0.5

@@ -27,6 +27,15 @@ from threept_jax.models.vit import Attention, LayerNorm, Mlp
 Array = jax.Array
 
 
+def unit_range(images: Array) -> Array:
+    """Images, uint8 or float in [0, 1] -> float32 in [0, 1] (3PT-R's crops and renders; the
+    ViT maps them to [-1, 1], ALIKED reads them as they are)."""
+    images = jnp.asarray(images)
+    if images.dtype == jnp.uint8:
+        return images.astype(jnp.float32) / 255.0
+    return images.astype(jnp.float32)
+
+
 def unit_vectors(x: Array, eps: float = 1e-6) -> Array:
     """x / max(|x|, eps) along the last axis, float32: descriptors and embeddings. Through the
     squared norm (rsqrt), so the gradient stays finite at x = 0 (``jnp.linalg.norm``'s is NaN

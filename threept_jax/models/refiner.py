@@ -55,7 +55,7 @@ from flax import nnx
 from threept_jax.models.aliked import ALIKED
 from threept_jax.models.configs import RefinerConfig, get_refiner_config
 from threept_jax.models.dpt import DPT, resize
-from threept_jax.models.heads import unit_vectors
+from threept_jax.models.heads import unit_range, unit_vectors
 from threept_jax.models.vit import (
     CrossAttentionBlock,
     EncoderBlock,
@@ -72,14 +72,6 @@ STEMS = {"xfeat": (lambda rngs: XFeat(folded=True, rngs=rngs), 64),
          "aliked": (lambda rngs: ALIKED(folded=True, rngs=rngs), 128)}
 
 Array = jax.Array
-
-
-def _unit_range(images: Array) -> Array:
-    """uint8 or float in [0, 1] -> float32 in [0, 1] (the ViT maps it to [-1, 1])."""
-    images = jnp.asarray(images)
-    if images.dtype == jnp.uint8:
-        return images.astype(jnp.float32) / 255.0
-    return images.astype(jnp.float32)
 
 
 class Refiner(nnx.Module):
@@ -155,8 +147,8 @@ class Refiner(nnx.Module):
         s, g, h = cfg.crop_size, cfg.grid_size, cfg.output_size
         n_real, n_pair = b * v, b * k * v
         # One encoder call over the real crops (ordered b, v) and the renders (b, k, v).
-        images = jnp.concatenate([_unit_range(real).reshape(n_real, s, s, 3),
-                                  _unit_range(renders).reshape(n_pair, s, s, 3)])
+        images = jnp.concatenate([unit_range(real).reshape(n_real, s, s, 3),
+                                  unit_range(renders).reshape(n_pair, s, s, 3)])
         # XFeat's [N, S/8, S/8, 64], ALIKED's [N, S, S, 128].
         stem = None if self.stem is None else self.stem(images)["features"]
         offsets = None
