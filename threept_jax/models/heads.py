@@ -36,6 +36,21 @@ def unit_range(images: Array) -> Array:
     return images.astype(jnp.float32)
 
 
+def matched_directly(f: Array, b: int, k: int, v: int) -> dict[str, Array]:
+    """3PT-R's output contract from a pretrained network's descriptor maps alone, untrained
+    (``XFeatDescriptors``, ``ALIKEDDescriptors``): ``f`` [B V + B K V, h, h, C], the real
+    crops' (ordered b, v) then the renders' (b, k, v) -> ``real_desc`` (repeated over the K
+    hypotheses) and ``render_desc`` [B, K, V, h, h, C], and zeros for what it has no opinion
+    on: ``mask_logits`` [B, K, V, h, h], ``view_scores`` [B, K, V], ``scores`` [B, K]."""
+    h, c = f.shape[1], f.shape[-1]
+    real_desc = jnp.broadcast_to(f[:b * v].reshape(b, 1, v, h, h, c), (b, k, v, h, h, c))
+    return {"real_desc": real_desc,
+            "render_desc": f[b * v:].reshape(b, k, v, h, h, c),
+            "mask_logits": jnp.zeros((b, k, v, h, h), jnp.float32),
+            "view_scores": jnp.zeros((b, k, v), jnp.float32),
+            "scores": jnp.zeros((b, k), jnp.float32)}
+
+
 def unit_vectors(x: Array, eps: float = 1e-6) -> Array:
     """x / max(|x|, eps) along the last axis, float32: descriptors and embeddings. Through the
     squared norm (rsqrt), so the gradient stays finite at x = 0 (``jnp.linalg.norm``'s is NaN

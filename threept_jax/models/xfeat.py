@@ -32,7 +32,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from threept_jax.models.dpt import resize
-from threept_jax.models.heads import unit_vectors
+from threept_jax.models.heads import matched_directly, unit_vectors
 
 Array = jax.Array
 
@@ -180,10 +180,4 @@ class XFeatDescriptors(nnx.Module):
         images = jnp.concatenate([jnp.asarray(real, jnp.float32).reshape(b * v, s, s, 3),
                                   jnp.asarray(renders, jnp.float32).reshape(b * k * v, s, s, 3)])
         f = unit_vectors(resize(self.xfeat(images)["features"], (h, h)))
-        real_desc = jnp.broadcast_to(f[:b * v].reshape(b, 1, v, h, h, -1),
-                                     (b, k, v, h, h, f.shape[-1]))
-        return {"real_desc": real_desc,
-                "render_desc": f[b * v:].reshape(b, k, v, h, h, -1),
-                "mask_logits": jnp.zeros((b, k, v, h, h), jnp.float32),
-                "view_scores": jnp.zeros((b, k, v), jnp.float32),
-                "scores": jnp.zeros((b, k), jnp.float32)}
+        return matched_directly(f, b, k, v)
