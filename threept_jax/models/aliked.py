@@ -38,11 +38,10 @@ from threept_jax.models.heads import matched_directly, unit_range, unit_vectors
 
 Array = jax.Array
 
-#: c1, c2, c3, c4, descriptor width, SDDH patch size, SDDH sample positions (upstream's cfgs).
-CONFIGS = {"aliked-t16": (8, 16, 32, 64, 64, 3, 16),
-           "aliked-n16": (16, 32, 64, 128, 128, 3, 16),
-           "aliked-n32": (16, 32, 64, 128, 128, 3, 32)}
-#: The variant shipped in models/aliked (the issue's measurement's).
+#: c1, c2, c3, c4, descriptor width, SDDH patch size, SDDH sample positions (upstream's cfgs;
+#: the wheel's other variants, t16, n16rot and n32, are not converted).
+CONFIGS = {"aliked-n16": (16, 32, 64, 128, 128, 3, 16)}
+#: The variant converted into models/aliked (the issue's measurement's).
 NAME = "aliked-n16"
 #: Input sizes must be multiples of this (the coarsest stride of the backbone).
 MULTIPLE = 32
