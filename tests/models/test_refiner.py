@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
+from threept_jax.models.aliked import ALIKEDDescriptors
 from threept_jax.models.configs import (
     REFINER_SIZES,
     RefinerConfig,
@@ -102,17 +103,24 @@ def test_conditioned_levels_and_stems_keep_hypotheses_apart_and_streams_siamese(
     and with the cross-attention branches off an identical render still gets the real crop's
     descriptors exactly."""
     cfg = get_refiner_config("tiny", conditioned_levels=4, pixel_features=8,
-                             pretrained_stem="aliked")
+                             pretrained_stem="aliked", stem_descriptors=True, descriptor_dim=128)
     model = Refiner(cfg, rngs=nnx.Rngs(0))
-    # The stem's token projection starts at zero (a fresh network starts as one without the
-    # stem); make it read the stem, so that the test covers that path too.
-    kernel = model.stem_tokens.kernel
-    assert not np.any(kernel[...])
-    kernel[...] = jax.random.normal(jax.random.key(0), kernel.shape) * 0.1
     real, renders = inputs
+    run = nnx.jit(lambda m, r, x: m(r, x))  # one compilation for the four calls
+    # A fresh network's descriptors are the stem's features matched directly (stem_descriptors:
+    # the head's correction starts at zero).
+    fresh = run(model, real, renders)
+    direct = nnx.jit(lambda s, r, x: ALIKEDDescriptors(s, cfg.output_size, sddh=False)(r, x))(
+        model.stem, real, renders)
+    for key in ("real_desc", "render_desc"):
+        np.testing.assert_allclose(np.asarray(fresh[key]), np.asarray(direct[key]), atol=1e-5)
+    # The stem's token projection and the descriptor head start at zero; make them read their
+    # inputs, so that the test covers those paths too.
+    for kernel in (model.stem_tokens.kernel, model.desc_head.kernel):
+        assert not np.any(kernel[...])
+        kernel[...] = jax.random.normal(jax.random.key(0), kernel.shape) * 0.1
     other = renders.copy()
     other[:, 1] = np.random.default_rng(1).uniform(size=other[:, 1].shape)
-    run = nnx.jit(lambda m, r, x: m(r, x))  # one compilation for the three calls
     a, b = run(model, real, renders), run(model, real, other)
     for key in a:
         np.testing.assert_allclose(np.asarray(b[key])[:, [0, 2]], np.asarray(a[key])[:, [0, 2]],
@@ -133,6 +141,8 @@ def test_conditioned_levels_and_stems_keep_hypotheses_apart_and_streams_siamese(
         get_refiner_config("tiny", pretrained_stem="xfeat", crop_size=80, variant="tiny/8")
     with pytest.raises(ValueError, match="pretrained_stem must be one of"):
         get_refiner_config("tiny", pretrained_stem="dino")
+    with pytest.raises(ValueError, match="stem_descriptors needs.*'aliked': 128.*got 'aliked'"):
+        get_refiner_config("tiny", pretrained_stem="aliked", stem_descriptors=True)
 
 
 def test_input_errors_name_the_expected_shapes(model, inputs):

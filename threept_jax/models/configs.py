@@ -301,6 +301,8 @@ class DetectorConfig(_VariantSizes):
 
 #: RefinerConfig.pretrained_stem values: none, XFeat's or ALIKED's.
 PRETRAINED_STEMS = ("none", "xfeat", "aliked")
+#: Channels of each pretrained stem's features.
+STEM_CHANNELS = {"xfeat": 64, "aliked": 128}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -341,6 +343,12 @@ class RefinerConfig(_VariantSizes):
         and resized to the map, joined to DPT's output before the heads (as the pixel stem's).
         Crop sizes in multiples of 32. The trainer loads the pretrained weights into a fresh
         run (``models/<stem>``); ``optim.freeze = "stem"`` holds them fixed.
+      stem_descriptors: the descriptor maps start as the pretrained stem's features: F =
+        unit(stem features resized to the map + the descriptor head's output), the head zero
+        at initialisation, so a fresh network matches as the stem's features matched directly
+        (:class:`threept_jax.models.aliked.ALIKEDDescriptors` with ``sddh=False``) and
+        training learns a correction. Needs ``descriptor_dim`` equal to the stem's channels
+        (:data:`STEM_CHANNELS`).
       attention_impl: ``None``/``"xla"``, or ``"cudnn"`` (flash attention, GPU, bf16/fp16).
       remat: rematerialise each encoder, cross-attention and DPT fusion block (and the DPT
         head) in the backward pass.
@@ -358,6 +366,7 @@ class RefinerConfig(_VariantSizes):
     conditioned_levels: int = 1
     pixel_features: int = 0
     pretrained_stem: str = "none"
+    stem_descriptors: bool = False
     attention_impl: str | None = None
     remat: bool = False
     dtype: Any = jnp.float32
@@ -381,6 +390,10 @@ class RefinerConfig(_VariantSizes):
             raise ValueError(f"RefinerConfig.pretrained_stem={self.pretrained_stem!r} needs a "
                              f"crop_size in multiples of 32 (the network's coarsest stride), got "
                              f"{self.crop_size}; use {-(-self.crop_size // m) * m}")
+        if self.stem_descriptors and STEM_CHANNELS.get(self.pretrained_stem) != self.descriptor_dim:
+            raise ValueError(f"RefinerConfig.stem_descriptors needs a pretrained_stem and a "
+                             f"descriptor_dim equal to its channels {STEM_CHANNELS}, got "
+                             f"{self.pretrained_stem!r} and {self.descriptor_dim}")
         if self.crop_size % p:
             raise ValueError(
                 f"RefinerConfig.crop_size={self.crop_size} is not a multiple of the patch size "

@@ -53,7 +53,7 @@ import numpy as np
 from flax import nnx
 
 from threept_jax.models.aliked import ALIKED
-from threept_jax.models.configs import RefinerConfig, get_refiner_config
+from threept_jax.models.configs import STEM_CHANNELS, RefinerConfig, get_refiner_config
 from threept_jax.models.dpt import DPT, resize
 from threept_jax.models.heads import unit_range, unit_vectors
 from threept_jax.models.vit import (
@@ -67,9 +67,9 @@ from threept_jax.models.vit import (
 from threept_jax.models.xfeat import XFeat
 
 #: Each pretrained stem (``RefinerConfig.pretrained_stem``): its network in the folded form a
-#: stem trains in, and the channels of its ``features``.
-STEMS = {"xfeat": (lambda rngs: XFeat(folded=True, rngs=rngs), 64),
-         "aliked": (lambda rngs: ALIKED(folded=True, rngs=rngs), 128)}
+#: stem trains in (the channels of its ``features``: ``configs.STEM_CHANNELS``).
+STEMS = {"xfeat": lambda rngs: XFeat(folded=True, rngs=rngs),
+         "aliked": lambda rngs: ALIKED(folded=True, rngs=rngs)}
 
 Array = jax.Array
 
@@ -109,8 +109,8 @@ class Refiner(nnx.Module):
             # A pretrained stem (configs.RefinerConfig.pretrained_stem): its features join the patch
             # embeddings through a linear layer that starts at zero, so a fresh network
             # starts as the one without the stem.
-            build, stem_dim = STEMS[cfg.pretrained_stem]
-            self.stem = build(rngs)
+            stem_dim = STEM_CHANNELS[cfg.pretrained_stem]
+            self.stem = STEMS[cfg.pretrained_stem](rngs)
             self.stem_tokens = nnx.Linear(stem_dim, cfg.width, kernel_init=nnx.initializers.zeros,
                                           **kw)
         else:
@@ -118,7 +118,9 @@ class Refiner(nnx.Module):
         joined = cfg.pixel_features + stem_dim
         # What the stems give at the map's resolution joins DPT's output by a 3x3 convolution.
         self.pixel_join = nnx.Conv(head_in + joined, head_in, **conv) if joined else nnx.data(None)
-        self.desc_head = nnx.Conv(head_in, cfg.descriptor_dim, (1, 1), **kw)
+        # With stem_descriptors the head is a correction to the stem's features, zero at first.
+        zero = dict(kernel_init=nnx.initializers.zeros) if cfg.stem_descriptors else {}
+        self.desc_head = nnx.Conv(head_in, cfg.descriptor_dim, (1, 1), **zero, **kw)
         self.mask_head = nnx.Conv(head_in, 1, (1, 1), **kw)
 
     def _pixel_features(self, images: Array) -> Array:
@@ -189,16 +191,20 @@ class Refiner(nnx.Module):
             levels.append(jnp.concatenate([real_level,
                                            self.dpt.reassemble(i, render_tokens, g)]))
         feats = self.dpt.fuse(levels)  # [2 * B*K*V, h, h, F/2]
+        stem_map = None if stem is None else resize(stem, (h, h)).astype(cfg.dtype)
         if self.pixel_join is not None:
             pix = []  # at the map's resolution, real crops then renders
             if self.pixel_stem is not None:
                 pix.append(self._pixel_features(images))
-            if stem is not None:
-                pix.append(resize(stem, (h, h)).astype(cfg.dtype))
+            if stem_map is not None:
+                pix.append(stem_map)
             pix = jnp.concatenate(pix, -1)
             pix = jnp.concatenate([per_pair(pix[:n_real]), pix[n_real:]])
             feats = jax.nn.relu(self.pixel_join(jnp.concatenate([feats, pix], -1)))
-        desc = unit_vectors(self.desc_head(feats)).reshape(2, b, k, v, h, h, cfg.descriptor_dim)
+        desc = self.desc_head(feats)
+        if cfg.stem_descriptors:
+            desc = desc + jnp.concatenate([per_pair(stem_map[:n_real]), stem_map[n_real:]])
+        desc = unit_vectors(desc).reshape(2, b, k, v, h, h, cfg.descriptor_dim)
         mask_logits = self.mask_head(feats[:n_pair]).astype(jnp.float32).reshape(b, k, v, h, h)
         return {
             "real_desc": desc[0],
