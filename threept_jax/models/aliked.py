@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
+from threept_jax.models.dpt import resize
 from threept_jax.models.heads import matched_directly, unit_range, unit_vectors
 
 Array = jax.Array
@@ -319,6 +320,5 @@ class ALIKEDDescriptors(nnx.Module):
                                       (images.shape[0], h * h, 2))
             f = self.aliked.descriptors(features, points).reshape(-1, h, h, self.aliked.dim)
         else:
-            f = unit_vectors(jax.image.resize(features, (features.shape[0], h, h,
-                                                         features.shape[-1]), "bilinear"))
+            f = unit_vectors(resize(features, (h, h)))  # as 3PT-R resizes its stem
         return matched_directly(f, b, k, v)

@@ -299,10 +299,10 @@ class DetectorConfig(_VariantSizes):
         return self.num_prior_views * self.tokens_per_view
 
 
-#: RefinerConfig.pretrained_stem values: none, XFeat's or ALIKED's.
-PRETRAINED_STEMS = ("none", "xfeat", "aliked")
-#: Channels of each pretrained stem's features.
+#: Each pretrained stem (RefinerConfig.pretrained_stem): the channels of its features.
 STEM_CHANNELS = {"xfeat": 64, "aliked": 128}
+#: RefinerConfig.pretrained_stem values: none, or one of STEM_CHANNELS.
+PRETRAINED_STEMS = ("none", *STEM_CHANNELS)
 
 
 @dataclasses.dataclass(frozen=True)
