@@ -19,7 +19,7 @@ working tree, which the call limits to 64 MiB with the carry. Three steps:
 3PT-R at the ``small`` and ``paper`` sizes: compile time, step time, FLOP/s, MFU against the
 device's peak bf16), ``train.log``, ``run.tar.gz.NN`` (the training run folder with its last
 checkpoint, in 15 MB parts) and ``summary.json`` (each training stage's steps before and after,
-minutes of each stage). Training goes through two stages (:data:`STAGES`): XFeat frozen for
+minutes of each stage). Training goes through two stages (:data:`STAGES`): ALIKED frozen for
 :data:`FROZEN_STEPS`, then the whole network fine-tuned from that run, in the same draw when
 time is left. It resumes from :data:`RUN` when it is there, in the stage that run is in;
 SIGTERM at the deadline saves a checkpoint, so a draw that ends early still brings back its
@@ -61,14 +61,24 @@ CALL_LIMIT = 64 * 2**20
 #: limit); the run travels as up to 4 parts beside the four small files.
 PART_BYTES = 15 * 2**20
 RUN_LIMIT = 4 * PART_BYTES
-#: The refiner trained on the device: the ``cpu`` size (mini/16, 2.3 M parameters) at 128 px
-#: crops, batch 64, reading XFeat as a frozen pretrained stem (0.66 M parameters; at 128 px on
-#: CPU it beat the same network without it on both held-out sets, docs/training.md,
-#: "Pretrained stems"). Its training state (parameters and Adam's two moments, float32, 36 MB)
-#: travels both ways; that of ``small`` (S/14, 35.9 M parameters: 430 MB) cannot.
+#: The refiner trained on the device: the ``cpu`` size (mini/16, 2.3 M parameters) reading
+#: ALIKED (aliked-n16, 0.68 M parameters) as its pretrained stem with ``stem_descriptors`` (the
+#: descriptors start as ALIKED's features and the head learns a correction): the best matcher
+#: trained on CPU, 1.8 x and 2.5 x position alone on the two held-out sets at 128 px crops
+#: (docs/training.md, "Pretrained stems: ALIKED"). On the device at 256 px crops, where ALIKED's
+#: own features match best (issue 40's measurement: 0.53 against position's 0.26), batch 32:
+#: the memory plan (:data:`MEMORY_LIMIT`) is 35 GiB, where batch 64 would be 70 GiB, too near an
+#: H100's 80. Its training state (parameters and Adam's two moments, float32, 36 MB) travels
+#: both ways; that of ``small`` (S/14, 35.9 M parameters: 430 MB) cannot.
 CONFIG = "cpu"
-CONFIG_OVERRIDES = ("--config.model.crop_size=128", "--config.model.output_size=64",
-                    "--config.model.pretrained_stem=xfeat", "--config.batch_size=64")
+CONFIG_OVERRIDES = ("--config.model.crop_size=256", "--config.model.output_size=64",
+                    "--config.model.pretrained_stem=aliked",
+                    "--config.model.stem_descriptors=True", "--config.model.descriptor_dim=128",
+                    "--config.batch_size=32")
+#: The most one training step of :data:`CONFIG` may need on the device (``memory_plan``, the
+#: fine-tuning stage's, which keeps the stem's activations too): half of an H100's 80 GiB, so
+#: that XLA's own buffers and the matching loss fit beside it.
+MEMORY_LIMIT = 40 * 2**30
 #: The plan's two stages, the recipe that worked on CPU (docs/training.md, "Pretrained stems":
 #: the gain came with fine-tuning, not with more frozen steps): the stem frozen for
 #: ``FROZEN_STEPS``, then the whole network fine-tuned from the frozen run's best checkpoint
@@ -79,7 +89,8 @@ STAGES = {"frozen": ("--config.optim.freeze=stem",),
 #: The dry run's (CPU, tests): the device's stem and stages, at the ``tiny`` size.
 DRY_CONFIG = "tiny"
 DRY_FROZEN_STEPS = 2
-DRY_OVERRIDES = ("--config.model.pretrained_stem=xfeat",
+DRY_OVERRIDES = ("--config.model.pretrained_stem=aliked", "--config.model.stem_descriptors=True",
+                 "--config.model.descriptor_dim=128",
                  "--config.batch_size=2", "--config.mesh.data=1",
                  "--config.data.num_hypotheses=2", "--config.refine.max_faces=256",
                  "--config.refine.num_matches=16", "--config.eval.every_steps=0",
@@ -126,11 +137,17 @@ def prepare(records: pathlib.Path, out: pathlib.Path, images: int, val_images: i
     if not (records / "objects.json").exists():
         raise SystemExit(f"{records} is not a records folder (no objects.json): pass the "
                          "records of a train.adapt or train.campaign run")
+    refiner = f"the device's refiner ({CONFIG}, {' '.join(CONFIG_OVERRIDES)})"
     state = state_bytes()
     if state > RUN_LIMIT:
-        raise SystemExit(f"the device's refiner ({CONFIG}, {' '.join(CONFIG_OVERRIDES)}) has a "
-                         f"{state / 2**20:.0f} MiB training state, over the {RUN_LIMIT >> 20} "
-                         "MiB a call brings back: choose a smaller size in scripts/device.py")
+        raise SystemExit(f"{refiner} has a {state / 2**20:.0f} MiB training state, over the "
+                         f"{RUN_LIMIT >> 20} MiB a call brings back: choose a smaller size in "
+                         "scripts/device.py")
+    step = step_bytes()
+    if step > MEMORY_LIMIT:
+        raise SystemExit(f"{refiner} needs {step / 2**30:.1f} GiB a train step, over the "
+                         f"{MEMORY_LIMIT >> 30} GiB planned for the device: lower the batch or "
+                         "the crop size in scripts/device.py")
     meshes = [ROOT.parent / "shared" / "meshes" / "bop" / "tless" / "models" /
               f"obj_{obj_id:06d}.ply" for obj_id in BENCH_MESHES]
     if not all(m.is_file() for m in meshes):
@@ -171,21 +188,49 @@ def _working_tree_bytes() -> int:
                if n and (ROOT / n.decode()).is_file())
 
 
+def _value(text: str):
+    """A config override's value as the launcher parses it: int, bool or string."""
+    return int(text) if text.isdigit() else {"True": True, "False": False}.get(text, text)
+
+
+def _overrides(overrides: tuple[str, ...], prefix: str) -> dict:
+    """The ``--config.<prefix>K=V`` entries of ``overrides`` as {K: value}."""
+    pairs = (o.removeprefix("--config.").split("=", 1) for o in overrides)
+    return {k.removeprefix(prefix): _value(v) for k, v in pairs if k.startswith(prefix)}
+
+
+def _refiner_config(config: str, overrides: tuple[str, ...], dtype: str):
+    from threept_jax.models.configs import get_refiner_config
+
+    return get_refiner_config(config, dtype=dtype, **_overrides(overrides, "model."))
+
+
 def state_bytes(config: str = CONFIG, overrides: tuple[str, ...] = CONFIG_OVERRIDES) -> int:
     """Bytes of a refiner's training state in float32: parameters and Adam's two moments."""
     import jax
     import numpy as np
     from flax import nnx
 
-    from threept_jax.models.configs import get_refiner_config
     from threept_jax.models.refiner import Refiner
 
-    model = {k.split(".")[-1]: int(v) if v.isdigit() else v
-             for k, v in (o.removeprefix("--config.").split("=") for o in overrides)
-             if k.startswith("model.")}
-    cfg = get_refiner_config(config, dtype="float32", **model)
+    cfg = _refiner_config(config, overrides, "float32")
     shapes = nnx.state(nnx.eval_shape(lambda: Refiner(cfg, rngs=nnx.Rngs(0))), nnx.Param)
     return 3 * 4 * sum(int(np.prod(x.shape)) for x in jax.tree.leaves(shapes))
+
+
+def step_bytes(config: str = CONFIG, overrides: tuple[str, ...] = CONFIG_OVERRIDES) -> int:
+    """Bytes one bfloat16 train step of the refiner needs on one device, every parameter
+    trained (the fine-tuning stage): ``Refiner.memory_plan``'s total at the batch and the
+    hypotheses of the config (from shapes only, no compute)."""
+    from threept_jax.models.refiner import memory_plan
+    from train.configs.refiner import get_config
+
+    train_config = get_config(config)
+    batch = _overrides(overrides, "").get("batch_size", train_config.batch_size)
+    hypotheses = _overrides(overrides, "data.").get("num_hypotheses",
+                                                     train_config.data.num_hypotheses)
+    cfg = _refiner_config(config, overrides, "bfloat16")
+    return memory_plan(cfg, instances=batch, hypotheses=hypotheses)["total"]
 
 
 def _environment() -> dict:

@@ -63,8 +63,13 @@ def test_bad_input_names_the_fix(tmp_path, monkeypatch):
     monkeypatch.setattr(device, "CALL_LIMIT", 1000)
     with pytest.raises(SystemExit, match="over the 0 MiB a call carries: pass fewer --images"):
         device.prepare(records, tmp_path / "carry", 4, 2, wheels=False)
+    limit = device.RUN_LIMIT
     monkeypatch.setattr(device, "RUN_LIMIT", 1000)  # a refiner whose state cannot come back
     with pytest.raises(SystemExit, match="MiB training state, over the 0 MiB a call brings"):
+        device.prepare(records, tmp_path / "carry", 4, 2, wheels=False)
+    monkeypatch.setattr(device, "RUN_LIMIT", limit)
+    monkeypatch.setattr(device, "MEMORY_LIMIT", 2**30)  # a step the device cannot hold
+    with pytest.raises(SystemExit, match=r"needs \d+\.\d GiB a train step, over the 1 GiB.*lower"):
         device.prepare(records, tmp_path / "carry", 4, 2, wheels=False)
 
 
@@ -103,12 +108,12 @@ def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypat
     mfu = (tmp_path / "out1" / "mfu.txt").read_text()
     assert mfu.count("x the matmul reference") == 2  # 3PT-D's step and 3PT-R's, both timed
     assert "tiny data: one thread makes" in mfu  # the carried records against the step
-    # The frozen stage's stem after its train steps is the converted XFeat, exactly (test_xfeat
-    # checks that against upstream's outputs); its token projection has moved.
-    xfeat = jax.tree.leaves(stem_params("xfeat"))
+    # The frozen stage's stem after its train steps is the converted ALIKED, exactly
+    # (test_aliked checks that against upstream's outputs); its token projection has moved.
+    aliked = jax.tree.leaves(stem_params("aliked"))
     model = load_refiner(frozen["workdir"])[0]
     for got, want in zip(jax.tree.leaves(nnx.to_pure_dict(nnx.state(model.stem, nnx.Param))),
-                         xfeat, strict=True):
+                         aliked, strict=True):
         np.testing.assert_array_equal(np.asarray(got), want)
     assert np.any(np.asarray(model.stem_tokens.kernel[...]))
     device("unpack", "--files", str(tmp_path / "out1"), "--to", str(run))
@@ -120,9 +125,10 @@ def test_a_dry_run_trains_packs_and_the_next_draw_resumes_it(tmp_path, monkeypat
     assert config["optim"]["freeze"] == "" and config["init_from"] == frozen["workdir"]
     assert json.loads((run / "refiner.json").read_text())["variant"] == "tiny/16"
     model, cfg, step, settings = load_refiner(run)
-    assert step == 2 and cfg.variant == "tiny/16" and cfg.pretrained_stem == "xfeat"
+    assert step == 2 and cfg.variant == "tiny/16" and cfg.pretrained_stem == "aliked"
+    assert cfg.stem_descriptors and cfg.descriptor_dim == 128
     stem = jax.tree.leaves(nnx.to_pure_dict(nnx.state(model.stem, nnx.Param)))
-    assert any(np.any(np.asarray(got) != want) for got, want in zip(stem, xfeat, strict=True))
+    assert any(np.any(np.asarray(got) != want) for got, want in zip(stem, aliked, strict=True))
     assert settings.num_matches == 16 and settings.max_faces == 256
     out = model(np.zeros((1, 1, 64, 64, 3), np.uint8), np.zeros((1, 2, 1, 64, 64, 3), np.uint8))
     assert out["scores"].shape == (1, 2)
