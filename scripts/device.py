@@ -415,7 +415,9 @@ def unpack(files: pathlib.Path, to: pathlib.Path) -> None:
     (staging / "run").rename(to)
     staging.rmdir()
     print(f"{to}: steps {_checkpoint_steps(to)}; held-out figures: python -m train.eval_refiner "
-          f"--workdir {to}", flush=True)
+          f"--workdir {to}; shipped as the default refiner only if it refines held-out scenes "
+          f"better: python -m train.ship --run {to} --name NAME --dataset-dir HELD_OUT",
+          flush=True)
 
 
 def main(argv=None) -> None:

@@ -37,7 +37,7 @@ def test_from_defaults_to_the_shipped_detector(tmp_path, monkeypatch):
 
     run = tiny_detector_run(tmp_path / "models" / "detector-x")
     monkeypatch.setattr(infer.shipped, "MODELS_DIR", tmp_path / "models")
-    monkeypatch.setattr(infer.shipped, "SHIPPED", {"detector": "detector-x", "refiner": None})
+    (tmp_path / "models" / "shipped.json").write_text('{"detector": "detector-x", "refiner": null}')
     args = adapt.parse_args(["--meshes", "procedural:1", "--workdir", str(tmp_path / "w")])
     assert args.init_from == run
     assert adapt.base_config(args, tmp_path / "records").init_from == str(run)
