@@ -30,6 +30,7 @@ on CPU.
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.metadata
 import importlib.util
 import io
@@ -205,6 +206,7 @@ def _refiner_config(config: str, overrides: tuple[str, ...], dtype: str):
     return get_refiner_config(config, dtype=dtype, **_overrides(overrides, "model."))
 
 
+@functools.lru_cache(maxsize=4)
 def state_bytes(config: str = CONFIG, overrides: tuple[str, ...] = CONFIG_OVERRIDES) -> int:
     """Bytes of a refiner's training state in float32: parameters and Adam's two moments."""
     import jax
@@ -218,6 +220,7 @@ def state_bytes(config: str = CONFIG, overrides: tuple[str, ...] = CONFIG_OVERRI
     return 3 * 4 * sum(int(np.prod(x.shape)) for x in jax.tree.leaves(shapes))
 
 
+@functools.lru_cache(maxsize=4)
 def step_bytes(config: str = CONFIG, overrides: tuple[str, ...] = CONFIG_OVERRIDES) -> int:
     """Bytes one bfloat16 train step of the refiner needs on one device, every parameter
     trained (the fine-tuning stage): ``Refiner.memory_plan``'s total at the batch and the

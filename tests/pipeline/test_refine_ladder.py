@@ -21,6 +21,7 @@ from threept_jax.pipeline.refinement import (
     Matches,
     RefineSettings,
     agreeing_matches,
+    depth_tested,
     edge_alignment,
     outline_shift,
     refine_step,
@@ -236,3 +237,79 @@ def test_updates_are_refused_without_consensus_and_kept_with_it(mesh):
     assert not out["outliers, consensus only"][0] and not out["outliers, outline only"][0]
     assert out["outliers, no test"][0]
     assert np.abs(out["outliers, no test"][2] - np.asarray(T0)).max() > 1e-3
+
+
+def test_depth_change_stands_only_where_the_matches_show_it():
+    """``depth_tested`` against float64 NumPy and OpenCV: the alternative is PnP's pose with the
+    object's centre moved along its ray to the input's depth; matches made by PnP's pose
+    exactly show its depth (statistic far over the threshold), matches made by the alternative
+    with 0.7 px of noise do not, and a change of depth that the noisy matches do show (30 mm at
+    300 mm) stands."""
+    rng = np.random.default_rng(3)
+    center = np.array([5.0, -3.0, 8.0])
+    crop_K = np.array([[[150.0, 0, 63.5], [0, 150.0, 63.5], [0, 0, 1]]])
+    T_cw = np.eye(4)[None]
+    before = np.eye(4)
+    before[:3, :3] = cv2.Rodrigues(np.array([0.3, -0.2, 0.1]))[0]
+    before[:3, 3] = [10.0, -5.0, 300.0]
+
+    def moved(depth_mm):  # PnP's pose: turned, shifted across and along the ray
+        T = before.copy()
+        T[:3, :3] = cv2.Rodrigues(np.array([0.02, 0.03, -0.01]))[0] @ before[:3, :3]
+        T[:3, 3] += [2.0, -1.0, depth_mm]
+        return T
+
+    def alternative(T):  # float64: the centre back to the input's depth along its ray
+        c = T[:3, :3] @ center + T[:3, 3]
+        z0 = (before[:3, :3] @ center + before[:3, 3])[2]
+        out = T.copy()
+        out[:3, 3] = c * z0 / c[2] - T[:3, :3] @ center
+        return out
+
+    X = center + rng.normal(0, 25.0, (60, 3))
+
+    def matches(T, noise):
+        uv, _ = cv2.projectPoints(X, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], crop_K[0], None)
+        uv = uv[:, 0] + rng.normal(0, noise, uv[:, 0].shape)
+        n = len(X)
+        return Matches(points_3d=jnp.asarray(X[None, None], jnp.float32),
+                       points_2d=jnp.asarray(uv[None, None], jnp.float32),
+                       weights=jnp.ones((1, 1, n)), similarity=jnp.zeros((1, 1, n)),
+                       render_pixel=jnp.zeros((1, 1, n), jnp.int32),
+                       real_pixel=jnp.zeros((1, 1, n), jnp.int32))
+
+    def run(m, after):
+        out, alt = depth_tested(m, jnp.asarray(crop_K, jnp.float32), jnp.asarray(T_cw, jnp.float32),
+                                jnp.asarray(center, jnp.float32),
+                                jnp.asarray(before[None], jnp.float32),
+                                jnp.asarray(after[None], jnp.float32), 0, 8.0, 3.84)
+        return np.asarray(out[0], np.float64), np.asarray(alt[0], np.float64)
+
+    def statistic(m, after):  # float64 NumPy with OpenCV's projections
+        uv = np.asarray(m.points_2d[0, 0], np.float64)
+        r = []
+        for T in (after, alternative(after)):
+            p, _ = cv2.projectPoints(X, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], crop_K[0], None)
+            r.append(np.sum((p[:, 0] - uv) ** 2, -1))
+        inlier = r[0] <= 64.0
+        c1, c0 = r[0][inlier].sum(), r[1][inlier].sum()
+        return (c0 - c1) / (c1 / (inlier.sum() - 6))
+
+    small = moved(8.0)
+    exact = matches(small, 0.0)
+    got, alt = run(exact, small)
+    np.testing.assert_allclose(alt, alternative(small), atol=2e-3)
+    np.testing.assert_allclose(got, small, atol=1e-4)  # exact matches show any depth
+    noisy = matches(alternative(small), 0.7)
+    assert statistic(noisy, small) < 3.84
+    got, _ = run(noisy, small)
+    np.testing.assert_allclose(got, alternative(small), atol=2e-3)
+    assert abs(got[2, 3] - small[2, 3]) > 7.0  # the depth went back, the rest stayed
+    np.testing.assert_allclose(got[:3, :3], small[:3, :3], atol=1e-6)
+    far = moved(30.0)
+    shown = matches(far, 0.7)
+    assert statistic(shown, far) > 3.84
+    got, _ = run(shown, far)
+    np.testing.assert_allclose(got, far, atol=1e-4)
+    with pytest.raises(ValueError, match="depth_test must be > 0"):
+        RefineSettings(depth_test=0.0)

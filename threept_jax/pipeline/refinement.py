@@ -74,7 +74,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from threept_jax.geometry.camera import crop_intrinsics, project, transform
+from threept_jax.geometry.camera import crop_intrinsics, invert, project, transform
 from threept_jax.geometry.pnp import solve_pnp
 from threept_jax.render.mesh import RasterMesh
 from threept_jax.render.raster import render
@@ -403,6 +403,10 @@ class RefineSettings:
         :func:`silhouettes`), unless it moves the matched points by under
         ``OUTLINE_MIN_SHIFT_PX`` (:func:`outline_shift`); off only to measure what the check
         does.
+      depth_test: None (off), or the threshold of :func:`depth_tested`'s likelihood-ratio
+        statistic (chi-square, one degree of freedom: 3.84 is its 95 % point): PnP's change
+        of depth is kept only where the matches show it; elsewhere the update keeps the input
+        pose's depth along the ray.
     """
 
     num_matches: int = 128
@@ -416,6 +420,7 @@ class RefineSettings:
     agree_map_px: float = 2.0
     min_agreement: float = 0.35
     check_outline: bool = True
+    depth_test: float | None = None
 
     def __post_init__(self):
         if not self.agree_map_px > 0 or not 0.0 <= self.min_agreement <= 1.0:
@@ -427,6 +432,9 @@ class RefineSettings:
                 raise ValueError(f"RefineSettings.{name} must be >= 1, got {getattr(self, name)}")
         if not 0.0 <= self.ambient <= 1.0:
             raise ValueError(f"RefineSettings.ambient must be in [0, 1], got {self.ambient}")
+        if self.depth_test is not None and not self.depth_test > 0:
+            raise ValueError("RefineSettings.depth_test must be > 0 (a chi-square threshold, "
+                             f"3.84 for 95 %) or None, got {self.depth_test}")
         if not self.huber_px > 0 or (self.tukey_px is not None and not self.tukey_px > 0):
             raise ValueError("RefineSettings.huber_px and tukey_px must be > 0 (tukey_px may be "
                              f"None), got {self.huber_px} and {self.tukey_px}")
@@ -465,6 +473,45 @@ def outline_shift(matches: Matches, crop_K: Array, T_cam_world: Array, before: A
     return jnp.max(per_view, -1)
 
 
+def depth_tested(matches: Matches, crop_K: Array, T_cam_world: Array, center: Array,
+                 before: Array, after: Array, view: Array, gate_px: float,
+                 threshold: float) -> tuple[Array, Array]:
+    """PnP's poses ``after`` [K, 4, 4] with their depth put back to the input poses' ``before``
+    where the matches do not show the change (``RefineSettings.depth_test``); returns (those
+    poses, the alternatives) [K, 4, 4] each.
+
+    The depth of a small part far away is the least determined of its six degrees of freedom:
+    it barely moves the projections, so PnP on noisy matches moves it by their noise. For each
+    hypothesis the alternative is ``after`` with the object's centre ``center`` (object frame,
+    mm) moved along its ray through camera ``view`` (an index of ``T_cam_world``) back to the
+    input pose's depth in that camera, rotation unchanged. Over the n matches that ``after``
+    projects within ``gate_px`` crop pixels (its inliers), with c the sum of squared
+    reprojection errors, the likelihood-ratio statistic of that one constraint is
+    ``(c_alternative - c_after) / (c_after / (n - 6))``; PnP's depth stands when it reaches
+    ``threshold`` (chi-square with one degree of freedom), else the alternative replaces it.
+    Exact matches show any depth change; with fewer than 7 inliers none is shown.
+    """
+    T_view = T_cam_world[view]
+    R = after[:, :3, :3]
+    c_after = transform(T_view @ after, center[None])[:, 0]  # [K, 3], camera frame
+    c_before = transform(T_view @ before, center[None])[:, 0]
+    scale = c_before[:, 2] / jnp.where(jnp.abs(c_after[:, 2]) > 1e-6, c_after[:, 2], 1e-6)
+    c_world = transform(invert(T_view), c_after * scale[:, None])  # [K, 3]
+    alternative = after.at[:, :3, 3].set(c_world - jnp.einsum("kij,j->ki", R, center))
+    uv1, z1 = project_matches(matches, crop_K, T_cam_world, after)
+    uv0, _ = project_matches(matches, crop_K, T_cam_world, alternative)
+    r1 = jnp.sum((uv1 - matches.points_2d) ** 2, -1)  # [K, V, N]
+    r0 = jnp.sum((uv0 - matches.points_2d) ** 2, -1)
+    inlier = (matches.weights > 0) & (z1 > 0) & (r1 <= gate_px * gate_px)
+    n = jnp.sum(inlier, axis=(1, 2))
+    cost1 = jnp.sum(jnp.where(inlier, r1, 0.0), axis=(1, 2))
+    cost0 = jnp.sum(jnp.where(inlier, r0, 0.0), axis=(1, 2))
+    variance = cost1 / jnp.maximum(n - 6, 1)
+    statistic = (cost0 - cost1) / jnp.maximum(variance, 1e-12)
+    shown = (n >= 7) & (statistic >= threshold) & (scale > 0)
+    return jnp.where(shown[:, None, None], after, alternative), alternative
+
+
 def update_hypotheses(outputs: dict, rend: Renders, mesh: RasterMesh, crops: Array,
                       crop_K: Array, T_cam_world: Array, hypotheses: Array,
                       settings: RefineSettings = RefineSettings(),
@@ -499,6 +546,10 @@ def update_hypotheses(outputs: dict, rend: Renders, mesh: RasterMesh, crops: Arr
 
     refined, info = jax.vmap(pnp)(matches.points_3d, matches.points_2d, matches.weights,
                                   hypotheses)
+    gate = s.agree_map_px * crop_size / rend.xyz.shape[-2]
+    if s.depth_test is not None:
+        refined, _ = depth_tested(matches, crop_K, T_cam_world, mesh.center, hypotheses, refined,
+                                  jnp.argmax(vm), gate, s.depth_test)
     # Safe update: PnP's pose replaces the input only when the image supports it. It must be
     # in front of a camera that sees the instance, and the matches must back it: at least
     # min_agreement of them (and 6) within agree_map_px of where it projects them, and no fewer
@@ -506,7 +557,6 @@ def update_hypotheses(outputs: dict, rend: Renders, mesh: RasterMesh, crops: Arr
     # does not know the part) then leave the input as it was instead of moving it at random.
     c = transform(T_cam_world[None], transform(refined, mesh.center[None])[:, None])  # [K,V,1,3]
     in_front = jnp.any((c[..., 0, 2] > 0) & vm[None], axis=1)
-    gate = s.agree_map_px * crop_size / rend.xyz.shape[-2]
     before = agreeing_matches(matches, crop_K, T_cam_world, hypotheses, gate)
     after = agreeing_matches(matches, crop_K, T_cam_world, refined, gate)
     valid = jnp.sum(matches.weights > 0, axis=(1, 2))
