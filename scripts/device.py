@@ -69,8 +69,8 @@ RUN_LIMIT = 4 * PART_BYTES
 #: (docs/training.md, "Pretrained stems: ALIKED"). On the device at 256 px crops, where ALIKED's
 #: own features match best (issue 40's measurement: 0.53 against position's 0.26), batch 32:
 #: the memory plan (:data:`MEMORY_LIMIT`) is 35 GiB, where batch 64 would be 70 GiB, too near an
-#: H100's 80. Its training state (parameters and Adam's two moments, float32, 36 MB) travels
-#: both ways; that of ``small`` (S/14, 35.9 M parameters: 430 MB) cannot.
+#: H100's 80. Its training state (parameters and Adam's two moments, float32, 35.6 MiB)
+#: travels both ways; that of ``small`` (S/14, 35.9 M parameters: 430 MB) cannot.
 CONFIG = "cpu"
 CONFIG_OVERRIDES = ("--config.model.crop_size=256", "--config.model.output_size=64",
                     "--config.model.pretrained_stem=aliked",
@@ -190,8 +190,16 @@ def _working_tree_bytes() -> int:
 
 
 def _value(text: str):
-    """A config override's value as the launcher parses it: int, bool or string."""
-    return int(text) if text.isdigit() else {"True": True, "False": False}.get(text, text)
+    """A config override's value as the launcher parses it: bool (any case), int, float or
+    string."""
+    if text.lower() in ("true", "false"):
+        return text.lower() == "true"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
 
 
 def _overrides(overrides: tuple[str, ...], prefix: str) -> dict:
@@ -203,7 +211,7 @@ def _overrides(overrides: tuple[str, ...], prefix: str) -> dict:
 def _refiner_config(config: str, overrides: tuple[str, ...], dtype: str):
     from threept_jax.models.configs import get_refiner_config
 
-    return get_refiner_config(config, dtype=dtype, **_overrides(overrides, "model."))
+    return get_refiner_config(config, **{"dtype": dtype, **_overrides(overrides, "model.")})
 
 
 @functools.lru_cache(maxsize=4)

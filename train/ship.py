@@ -6,7 +6,8 @@ dataset (``python -m infer bop --evaluate``: the default detector, every part of
 queried, every detection kept, so both runs refine the same detections): once refined by the
 run's best checkpoint, once by the refiner used today (``infer.shipped.default_refiner``: the
 shipped 3PT-R, else the training-free contour refiner). The run ships only when its BOP 6D AP
-is higher:
+is higher (by any margin: the dataset is the user's choice, and a larger one makes the margin
+mean more):
 
 * it is exported (``train.export``) to ``models/refiner-NAME``, with a card written from the
   figures (``MODEL_CARD.md``: what the model is, how it was trained, the check's figures and
@@ -34,6 +35,7 @@ import json
 import pathlib
 import re
 import shlex
+import shutil
 import sys
 from collections.abc import Sequence
 
@@ -70,6 +72,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         p.error(f"--records {args.records} is not a records folder (no objects.json)")
     if args.max_detections < 1:
         p.error("--max-detections must be >= 1")
+    from infer import shipped
+
+    folder = shipped.MODELS_DIR / f"refiner-{args.name}"
+    if folder.exists() and shipped.shipped_names()["refiner"] != folder.name:
+        p.error(f"--name {args.name}: {folder} exists and is not the shipped refiner; choose "
+                "another name")
     args.out = args.out or pathlib.Path("runs") / "ship" / args.name
     return args
 
@@ -180,10 +188,16 @@ def ship(run: pathlib.Path, name: str, result: dict, command: str) -> pathlib.Pa
     from train import export
 
     folder = shipped.MODELS_DIR / f"refiner-{name}"
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / "MODEL_CARD.md").write_text(card(name, run, result, command))  # kept by export
-    export.export(run, folder, model="refiner")
-    shipped.set_shipped("refiner", folder.name)
+    existed = folder.exists()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "MODEL_CARD.md").write_text(card(name, run, result, command))  # export keeps it
+        export.export(run, folder, model="refiner")
+        shipped.set_shipped("refiner", folder.name)
+    except BaseException:
+        if not existed:
+            shutil.rmtree(folder, ignore_errors=True)
+        raise
     return folder
 
 

@@ -219,6 +219,7 @@ def test_updates_are_refused_without_consensus_and_kept_with_it(mesh):
     out = {}
     for name, net, settings in (
             ("clean", make_oracle(32), safe),
+            ("clean, depth test", make_oracle(32), dataclasses.replace(safe, depth_test=3.84)),
             ("outliers", make_oracle(32, outliers=1.0), safe),
             ("outliers, consensus only", make_oracle(32, outliers=1.0),
              dataclasses.replace(safe, check_outline=False)),
@@ -232,6 +233,8 @@ def test_updates_are_refused_without_consensus_and_kept_with_it(mesh):
         out[name] = (bool(r.accepted[0]), pose_errors(np.asarray(r.hypotheses[0]), scene.T_gt),
                      np.asarray(r.hypotheses[0]))
     assert out["clean"][0] and out["clean"][1][0] < 0.5 * e0[0], (out["clean"], e0)
+    # The oracle's clean matches show its depth change: the depth test keeps the same update.
+    np.testing.assert_allclose(out["clean, depth test"][2], out["clean"][2], atol=1e-4)
     assert not out["outliers"][0]
     np.testing.assert_array_equal(out["outliers"][2], np.asarray(T0))
     assert not out["outliers, consensus only"][0] and not out["outliers, outline only"][0]

@@ -4,7 +4,6 @@ figures are those of ``infer.bop_runner.run_bop``, tested in tests/infer/test_bo
 the export, the card, ``models/shipped.json`` and the default loading are real."""
 
 import json
-import shutil
 import subprocess
 
 import jax
@@ -38,13 +37,13 @@ def _summary(ap: float) -> dict:
 
 @pytest.fixture
 def repo(tmp_path, monkeypatch):
-    """A models/ folder holding the repository's shipped.json (no 3PT-R ships), a held-out
+    """A models/ folder whose shipped.json names no 3PT-R (the repository's today), a held-out
     dataset folder, and run_bop recorded: the refiner named in ``aps`` gets that 6D AP."""
     import infer.bop_runner
 
     models = tmp_path / "models"
     models.mkdir()
-    shutil.copy2(shipped.MODELS_DIR / shipped.SHIPPED_FILE, models)
+    (models / shipped.SHIPPED_FILE).write_text('{"detector": "detector-cpu", "refiner": null}')
     monkeypatch.setattr(shipped, "MODELS_DIR", models)
     (tmp_path / "held" / "val_pbr").mkdir(parents=True)
     aps, calls = {}, []
@@ -138,6 +137,11 @@ def test_a_better_refiner_ships_loads_by_default_and_a_worse_one_does_not_replac
     assert {p: p.read_bytes() for p in models.rglob("*") if p.is_file()} == before
     assert "not shipped" in capsys.readouterr().out
     assert not json.loads((tmp_path / "out" / "other" / "ship_check.json").read_text())["ships"]
+    # A name taken by a folder that is not the shipped refiner is refused before any work.
+    (models / "refiner-stale").mkdir()
+    with pytest.raises(SystemExit) as e:
+        ship.main(_argv(tmp_path, other, "stale"))
+    assert e.value.code == 2 and "exists and is not the shipped refiner" in capsys.readouterr().err
 
 
 def test_shipped_json_missing_or_malformed_is_named_with_its_restore(tmp_path, monkeypatch):

@@ -489,13 +489,14 @@ def depth_tested(matches: Matches, crop_K: Array, T_cam_world: Array, center: Ar
     reprojection errors, the likelihood-ratio statistic of that one constraint is
     ``(c_alternative - c_after) / (c_after / (n - 6))``; PnP's depth stands when it reaches
     ``threshold`` (chi-square with one degree of freedom), else the alternative replaces it.
-    Exact matches show any depth change; with fewer than 7 inliers none is shown.
+    Exact matches show any depth change; with fewer than 7 inliers none is shown. Where
+    either pose puts the centre behind that camera, PnP's pose is returned as it is.
     """
     T_view = T_cam_world[view]
     R = after[:, :3, :3]
     c_after = transform(T_view @ after, center[None])[:, 0]  # [K, 3], camera frame
     c_before = transform(T_view @ before, center[None])[:, 0]
-    scale = c_before[:, 2] / jnp.where(jnp.abs(c_after[:, 2]) > 1e-6, c_after[:, 2], 1e-6)
+    scale = c_before[:, 2] / jnp.where(c_after[:, 2] > 1e-6, c_after[:, 2], -1.0)
     c_world = transform(invert(T_view), c_after * scale[:, None])  # [K, 3]
     alternative = after.at[:, :3, 3].set(c_world - jnp.einsum("kij,j->ki", R, center))
     uv1, z1 = project_matches(matches, crop_K, T_cam_world, after)
@@ -508,7 +509,9 @@ def depth_tested(matches: Matches, crop_K: Array, T_cam_world: Array, center: Ar
     cost0 = jnp.sum(jnp.where(inlier, r0, 0.0), axis=(1, 2))
     variance = cost1 / jnp.maximum(n - 6, 1)
     statistic = (cost0 - cost1) / jnp.maximum(variance, 1e-12)
-    shown = (n >= 7) & (statistic >= threshold) & (scale > 0)
+    # A centre behind the camera (scale <= 0) has no depth to put back along its ray: PnP's
+    # pose is left to the step's other tests (in front of a camera).
+    shown = ((n >= 7) & (statistic >= threshold)) | (scale <= 0)
     return jnp.where(shown[:, None, None], after, alternative), alternative
 
 
