@@ -403,10 +403,10 @@ class RefineSettings:
         :func:`silhouettes`), unless it moves the matched points by under
         ``OUTLINE_MIN_SHIFT_PX`` (:func:`outline_shift`); off only to measure what the check
         does.
-      depth_test: None (off), or the threshold of :func:`depth_tested`'s likelihood-ratio
-        statistic (chi-square, one degree of freedom: 3.84 is its 95 % point): PnP's change
-        of depth is kept only where the matches show it; elsewhere the update keeps the input
-        pose's depth along the ray.
+      depth_test: None (off), or the scale of :func:`depth_tested`'s likelihood-ratio
+        statistic S (chi-square, one degree of freedom: 3.84 is its 95 % point): PnP's change
+        of depth is kept in the share S / (S + depth_test) that the matches show; the rest of
+        the update keeps the input pose's depth along the ray.
     """
 
     num_matches: int = 128
@@ -476,9 +476,9 @@ def outline_shift(matches: Matches, crop_K: Array, T_cam_world: Array, before: A
 def depth_tested(matches: Matches, crop_K: Array, T_cam_world: Array, center: Array,
                  before: Array, after: Array, view: Array, gate_px: float,
                  threshold: float) -> tuple[Array, Array]:
-    """PnP's poses ``after`` [K, 4, 4] with their depth put back to the input poses' ``before``
-    where the matches do not show the change (``RefineSettings.depth_test``); returns (those
-    poses, the alternatives) [K, 4, 4] each.
+    """PnP's poses ``after`` [K, 4, 4] with their change of depth kept as far as the matches
+    show it (``RefineSettings.depth_test``); returns (those poses, the alternatives) [K, 4, 4]
+    each.
 
     The depth of a small part far away is the least determined of its six degrees of freedom:
     it barely moves the projections, so PnP on noisy matches moves it by their noise. For each
@@ -487,10 +487,13 @@ def depth_tested(matches: Matches, crop_K: Array, T_cam_world: Array, center: Ar
     input pose's depth in that camera, rotation unchanged. Over the n matches that ``after``
     projects within ``gate_px`` crop pixels (its inliers), with c the sum of squared
     reprojection errors, the likelihood-ratio statistic of that one constraint is
-    ``(c_alternative - c_after) / (c_after / (n - 6))``; PnP's depth stands when it reaches
-    ``threshold`` (chi-square with one degree of freedom), else the alternative replaces it.
-    Exact matches show any depth change; with fewer than 7 inliers none is shown. Where
-    either pose puts the centre behind that camera, PnP's pose is returned as it is.
+    S = ``(c_alternative - c_after) / (c_after / (n - 6))`` (chi-square with one degree of
+    freedom when the alternative is right). The pose returned is the alternative moved
+    towards ``after`` by S / (S + ``threshold``) of the way (the rotation is PnP's): all of it
+    for exact matches, none where the alternative fits the inliers as well, half at S =
+    ``threshold``; none with fewer than 7 inliers. (All or nothing at ``threshold`` measured
+    worse on every held-out set, docs/training.md.) Where either pose puts the centre behind
+    that camera, PnP's pose is returned as it is.
     """
     T_view = T_cam_world[view]
     R = after[:, :3, :3]
@@ -509,10 +512,14 @@ def depth_tested(matches: Matches, crop_K: Array, T_cam_world: Array, center: Ar
     cost0 = jnp.sum(jnp.where(inlier, r0, 0.0), axis=(1, 2))
     variance = cost1 / jnp.maximum(n - 6, 1)
     statistic = (cost0 - cost1) / jnp.maximum(variance, 1e-12)
+    # The share of PnP's depth change kept: S / (S + threshold), 0 with fewer than 7 inliers.
     # A centre behind the camera (scale <= 0) has no depth to put back along its ray: PnP's
     # pose is left to the step's other tests (in front of a camera).
-    shown = ((n >= 7) & (statistic >= threshold)) | (scale <= 0)
-    return jnp.where(shown[:, None, None], after, alternative), alternative
+    evidence = jnp.maximum(statistic, 0.0)
+    kept = jnp.where(n >= 7, evidence / (evidence + threshold), 0.0)
+    kept = jnp.where(scale <= 0, 1.0, kept)
+    t = alternative[:, :3, 3] + kept[:, None] * (after[:, :3, 3] - alternative[:, :3, 3])
+    return after.at[:, :3, 3].set(t), alternative
 
 
 def update_hypotheses(outputs: dict, rend: Renders, mesh: RasterMesh, crops: Array,
