@@ -117,10 +117,10 @@ def card(name: str, run: pathlib.Path, result: dict, command: str) -> str:
     from threept_jax.data.run_dir import RunDir
 
     rd = RunDir(run, model="refiner")
-    config, model = rd.read_config(), json.loads((run / "refiner.json").read_text())
+    config, model = rd.read_config(), rd.read_model_config()
     steps = rd.checkpoint_steps()
-    stem = model.get("pretrained_stem") or "none"
-    if stem != "none" and model.get("stem_descriptors"):
+    stem = model.pretrained_stem
+    if stem != "none" and model.stem_descriptors:
         stem += " (descriptors start as its features: stem_descriptors)"
     a, b = result["candidate"], result["default"]
     lines = [
@@ -133,8 +133,8 @@ def card(name: str, run: pathlib.Path, result: dict, command: str) -> str:
         "",
         "## What it is",
         "",
-        f"- 3PT-R (docs/refiner.md), `{model.get('variant')}`, {model.get('crop_size')} px crops, "
-        f"{model.get('output_size')} px maps, pretrained stem: {stem}.",
+        f"- 3PT-R (docs/refiner.md), `{model.variant}`, {model.crop_size} px crops, "
+        f"{model.output_size} px maps, pretrained stem: {stem}.",
         f"- Trained by `python train/launch.py` (`config.json` here): {steps[-1] if steps else 0} "
         f"of {config.get('total_steps', '?')} planned steps; this folder holds the best "
         f"checkpoint, step {rd.best_step()}.",
@@ -157,17 +157,18 @@ def card(name: str, run: pathlib.Path, result: dict, command: str) -> str:
     ]
     if "records" in result:
         d = result["records"]
+        # train.eval_refiner reports the rotation after 1 and after its last step N.
+        last = max((k for k in d if k.startswith("rot_deg_after_")),
+                   key=lambda k: int(k.rsplit("_", 1)[1]))
         lines += [
             "",
             "## Diagnostic: held-out refiner records (`train.eval_refiner`)",
             "",
-            f"On `{result['records_dir']}`: matches within 2 px "
-            f"{d.get('match_within_2px', float('nan')):.3f} against position alone "
-            f"{d.get('match_within_2px_same_place', float('nan')):.3f}; median rotation error "
-            f"{d.get('rot_deg_before', float('nan')):.2f} -> "
-            f"{d.get('rot_deg_after', float('nan')):.2f} degrees; MSSD recall "
-            f"{d.get('ar_mssd_before', float('nan')):.3f} -> "
-            f"{d.get('ar_mssd_after', float('nan')):.3f} (before -> after its steps).",
+            f"On `{result['records_dir']}`: matches within 2 px {d['match_within_2px']:.3f} "
+            f"against position alone {d['match_within_2px_same_place']:.3f}; median rotation "
+            f"error {d['rot_deg_before']:.2f} -> {d[last]:.2f} degrees; MSSD recall "
+            f"{d['ar_mssd_before']:.3f} -> {d['ar_mssd_after']:.3f} (before -> after its "
+            f"{last.rsplit('_', 1)[1]} steps).",
         ]
     lines += [
         "",
