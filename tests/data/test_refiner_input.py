@@ -135,6 +135,8 @@ def test_fields_shapes_and_dtypes(toy):
 
 def test_crop_K_puts_the_gt_centre_where_opencv_projects_it(toy):
     cfg = _cfg()
+    _dataset(toy, seed=5)[0]
+    compiled = ri.crop_frame._cache_size()
     for i in range(2):  # images 0 and 1 (valid examples)
         ex = _dataset(toy, seed=5)[i]
         assert ex["valid"]
@@ -162,6 +164,8 @@ def test_crop_K_puts_the_gt_centre_where_opencv_projects_it(toy):
         assert side < CROP
         diff = np.abs(ref.astype(int) - ex["crops"][0].astype(int))[2:-2, 2:-2]
         assert np.median(diff) <= 1 and diff.max() <= 3
+    # Every example's crop came from one compiled crop_frame (no retrace per example).
+    assert ri.crop_frame._cache_size() == compiled
 
 
 def test_visible_mask_matches_a_brute_force_nearest_loop(toy):

@@ -68,6 +68,7 @@ vertex colour by the texture, so they render as before).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import pathlib
 from collections.abc import Mapping
@@ -142,6 +143,17 @@ class Sphere(NamedTuple):
 
     center: np.ndarray
     radius: float
+
+
+@functools.partial(jax.jit, static_argnames=("margin", "size"))
+def crop_frame(sphere: Sphere, T_cam_obj, K, margin: float, size: int):
+    """The crop of one example: :func:`~threept_jax.geometry.framing.crop_boxes`' box [4]
+    (pixel-edge xyxy) around ``sphere`` projected at ``T_cam_obj`` [4, 4] by the image's ``K``
+    [3, 3], and :func:`~threept_jax.geometry.camera.crop_intrinsics` of it resized to ``size``
+    (float32 [3, 3]). One compiled call: run op by op, their few dozen small operations took
+    most of an example's sampling (``bench/refiner_step.py --records``)."""
+    box = crop_boxes(sphere, T_cam_obj, jnp.eye(4)[None], K[None], margin=margin)[0]
+    return box, crop_intrinsics(K, box, (size, size))
 
 
 # --------------------------------------------------------------------------- meshes
@@ -340,9 +352,9 @@ class SampleInstance(grain.transforms.RandomMap):
         T_gt = np.asarray(ex["T_cam_obj"][k], np.float64)
         hyps = perturb_poses(T_gt, sphere.center, diameter, J, cfg, rng)
         with jax.default_device(jax.devices("cpu")[0]):
-            box = np.asarray(crop_boxes(sphere, hyps[0], np.eye(4)[None], K[None],
-                                        margin=cfg.crop_margin), np.float64)[0]
-            crop_K = np.asarray(crop_intrinsics(K, box, (S, S)), np.float32)
+            box, crop_K = (np.asarray(a) for a in crop_frame(sphere, hyps[0], K,
+                                                              cfg.crop_margin, S))
+        box = box.astype(np.float64)
         x0, y0 = box[0], box[1]
         side = box[2] - box[0]
         crop = warp_crop(ex["rgb"], x0, y0, side, S)
