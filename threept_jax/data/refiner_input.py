@@ -354,7 +354,7 @@ class SampleInstance(grain.transforms.RandomMap):
         with jax.default_device(jax.devices("cpu")[0]):
             box, crop_K = (np.asarray(a) for a in crop_frame(sphere, hyps[0], K,
                                                               cfg.crop_margin, S))
-        box = box.astype(np.float64)
+        box, crop_K = box.astype(np.float64), crop_K.astype(np.float32)
         x0, y0 = box[0], box[1]
         side = box[2] - box[0]
         crop = warp_crop(ex["rgb"], x0, y0, side, S)
