@@ -352,9 +352,8 @@ class SampleInstance(grain.transforms.RandomMap):
         T_gt = np.asarray(ex["T_cam_obj"][k], np.float64)
         hyps = perturb_poses(T_gt, sphere.center, diameter, J, cfg, rng)
         with jax.default_device(jax.devices("cpu")[0]):
-            box, crop_K = (np.asarray(a) for a in crop_frame(sphere, hyps[0], K,
-                                                              cfg.crop_margin, S))
-        box, crop_K = box.astype(np.float64), crop_K.astype(np.float32)
+            box, crop_K = crop_frame(sphere, hyps[0], K, cfg.crop_margin, S)
+        box, crop_K = np.asarray(box, np.float64), np.asarray(crop_K, np.float32)
         x0, y0 = box[0], box[1]
         side = box[2] - box[0]
         crop = warp_crop(ex["rgb"], x0, y0, side, S)
