@@ -24,7 +24,11 @@ downloaded and nothing from outside the repository:
 3. **No training, score calibrated on the cell** (``python -m train.templates_score --cell``):
    the templates detector again, its score a logistic model per part fitted on the adapted
    setting's first 30 training images (what a right candidate of each part looks like; no
-   network is trained), on the same test images.
+   network is trained), on the same test images. Settings 1-3 look at the same images with
+   the same parts, so the templates detector searches each image once
+   (:func:`infer.shape_detect.shared_searches`) and each setting scores what it found its own
+   way: the BOP ``time`` of settings 2 and 3 leaves the search out (``bench/shape_search.py``
+   times it).
 4. **Zero-shot**: five other procedural parts, never seen in training, are onboarded from
    their meshes alone and detected by the shipped models, as a user who installs threept_jax
    gets them, in a cell of their own (val scenes choose the overlay threshold, test scenes give
@@ -139,28 +143,33 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p.add_argument("--test-scenes", type=int, default=4, help="2 images each, per setting")
     args = p.parse_args(argv)
     total = time.perf_counter()
+    from infer.shape_detect import shared_searches
     from train import adapt
 
-    adapted = adapt.main([
-        "--meshes", "procedural:5", "--seed", str(ADAPTED_SEED), "--workdir",
-        str(args.out / "adapted"), "--minutes", f"{args.minutes:g}", "--detector", args.detector,
-        "--config", args.config, "--from", args.init_from,
-        "--train-scenes", str(args.train_scenes), "--test-scenes", str(args.test_scenes),
-        "--refiner-minutes", f"{args.refiner_minutes:g}"])
+    # The first three settings look at the same images with the same parts: the templates
+    # detector searches each image once (in the cell detector's test), and the shared score
+    # and the cell's calibration score the same candidates.
+    with shared_searches():
+        adapted = adapt.main([
+            "--meshes", "procedural:5", "--seed", str(ADAPTED_SEED), "--workdir",
+            str(args.out / "adapted"), "--minutes", f"{args.minutes:g}", "--detector",
+            args.detector, "--config", args.config, "--from", args.init_from,
+            "--train-scenes", str(args.train_scenes), "--test-scenes", str(args.test_scenes),
+            "--refiner-minutes", f"{args.refiner_minutes:g}"])
 
-    print(f"\n== no training: the templates detector on the same cell and test images -> "
-          f"{args.out / 'no_training'}", flush=True)
-    start = time.perf_counter()
-    templates = no_training(args.out / "adapted", args.out / "no_training")
-    print(f"   ({time.perf_counter() - start:.0f} s)")
+        print(f"\n== no training: the templates detector on the same cell and test images -> "
+              f"{args.out / 'no_training'}", flush=True)
+        start = time.perf_counter()
+        templates = no_training(args.out / "adapted", args.out / "no_training")
+        print(f"   ({time.perf_counter() - start:.0f} s)")
 
-    print(f"\n== no training, score calibrated on the cell: the templates detector, a score "
-          f"per part fitted on the adapted setting's training images -> "
-          f"{args.out / 'calibrated'}", flush=True)
-    start = time.perf_counter()
-    tuned = calibrated(args.out / "adapted", args.out / "calibrated",
-                       args.out / "no_training" / "cache")
-    print(f"   ({time.perf_counter() - start:.0f} s)")
+        print(f"\n== no training, score calibrated on the cell: the templates detector, a score "
+              f"per part fitted on the adapted setting's training images -> "
+              f"{args.out / 'calibrated'}", flush=True)
+        start = time.perf_counter()
+        tuned = calibrated(args.out / "adapted", args.out / "calibrated",
+                           args.out / "no_training" / "cache")
+        print(f"   ({time.perf_counter() - start:.0f} s)")
 
     print(f"\n== zero-shot: the shipped models on 5 parts never seen in training -> "
           f"{args.out / 'zero_shot'}", flush=True)

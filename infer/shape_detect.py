@@ -18,14 +18,18 @@ its weights (``--templates-score FILE`` on the commands).
 
 Building it renders each mesh's contour views once (the contour refiner's cache under
 ``cache_dir``, a few seconds per mesh on 2 CPU cores); the first image of a size compiles the
-template fit and the verification (cold), later images reuse them (warm).
+template fit and the verification (cold), later images reuse them (warm). Within
+:func:`shared_searches`, detectors that differ only in their score weights search an image once.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import os
 import pathlib
+from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from typing import NamedTuple
 
@@ -63,6 +67,8 @@ MIN_DIAMETER_PX = 32.0
 #: cells 65 % of the verified candidates above 0.4 are right (docs/benchmarks.md); evaluations
 #: pass 0 (AP ranks every detection).
 SCORE_THRESHOLD = 0.4
+#: How many images' verified candidates :func:`shared_searches` keeps (about 30 kB each).
+SHARED_IMAGES = 64
 
 
 def load_score_weights(path: str | os.PathLike) -> dict[int, tuple[float, ...]]:
@@ -110,6 +116,28 @@ class Candidates(NamedTuple):
     features: np.ndarray
 
 
+#: Inside :func:`shared_searches`: the verified candidates (or None) of the images searched
+#: last, oldest first, keyed by the search (parts' meshes, depth range, settings), the image and
+#: its K; None outside.
+_SHARED: OrderedDict[str, Candidates | None] | None = None
+
+
+@contextlib.contextmanager
+def shared_searches():
+    """Within it, an image that a detector of the same parts, depth range and settings searched
+    is not searched again: the verified candidates do not depend on the score weights, so the
+    shared score, a cell's calibration and the cell detector's own templates search (``make
+    demo``'s settings on the same images) share one search (the last :data:`SHARED_IMAGES`
+    images' candidates are kept). Outside it every call searches, a repeated image too (what a
+    timing of the warm path must see)."""
+    global _SHARED
+    outer, _SHARED = _SHARED, OrderedDict()
+    try:
+        yield
+    finally:
+        _SHARED = outer
+
+
 class ShapeSearchDetector:
     """Detects objects (anything with ``obj_id`` and ``mesh``, mm) by shape search (module
     docstring). ``depth_range``: (zmin, zmax) mm of the objects' centres from the camera (a
@@ -153,6 +181,13 @@ class ShapeSearchDetector:
         self.templates = jax.tree.map(jnp.asarray, templates)
         self.centers = np.stack([c["center"] for c in contours])
         self.diameters = np.array([2.0 * float(c["radius"]) for c in contours])
+        # What the candidates depend on, with the image and K (not the score weights).
+        search = hashlib.sha256(repr((self.depth_range, self.settings)).encode())
+        for o in self.objects:
+            search.update(str(o.obj_id).encode())
+            for a in (o.mesh.vertices, o.mesh.faces):
+                search.update(np.ascontiguousarray(a).tobytes())
+        self._search = search
 
     def _depths(self, o: int, K: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
         if self.depth_range is not None:
@@ -181,14 +216,36 @@ class ShapeSearchDetector:
 
     def candidates(self, image: np.ndarray, K: np.ndarray) -> Candidates | None:
         """The verified candidates of one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3]
-        (pixels of this image), before scoring and NMS; None when there are none (no
-        proposal, no outline)."""
-        image = np.asarray(image)
+        (pixels of this image), before scoring and NMS; None when there are none (no proposal,
+        no outline). Within :func:`shared_searches`, an image searched there by a detector of
+        the same search is not searched again (its candidates' arrays are read-only there)."""
+        image = np.ascontiguousarray(image)
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise ValueError(f"image must be uint8 RGB [H, W, 3], got {image.dtype} "
                              f"{image.shape}")
+        K = validate_intrinsics(K, "K", image_hw=image.shape[:2]).astype(np.float64)
+        shared = _SHARED
+        if shared is None:
+            return self._candidates(image, K)
+        key = self._search.copy()
+        for a in (np.array(image.shape), image, K):
+            key.update(a.tobytes())
+        key = key.hexdigest()
+        if key in shared:
+            shared.move_to_end(key)
+            return shared[key]
+        found = self._candidates(image, K)
+        if found is not None:
+            for a in found:
+                a.flags.writeable = False
+        shared[key] = found
+        while len(shared) > SHARED_IMAGES:
+            shared.popitem(last=False)
+        return found
+
+    def _candidates(self, image: np.ndarray, K: np.ndarray) -> Candidates | None:
+        """:meth:`candidates` of a checked image and K (float64), searched."""
         hw = image.shape[:2]
-        K = validate_intrinsics(K, "K", image_hw=hw).astype(np.float64)
         s = self.settings
         boxes = proposals(image, s)
         if not len(boxes) or self._empty.all():

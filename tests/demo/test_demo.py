@@ -22,8 +22,14 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
                                                                  capsys):
     calls = {}
 
+    import infer.shape_detect
+
+    def shared():  # inside infer.shape_detect.shared_searches
+        return infer.shape_detect._SHARED is not None
+
     def fake_main(argv):
         calls["adapt"] = argv
+        calls["shared"] = [shared()]
         w = tmp_path / "out" / "adapted"
         w.mkdir(parents=True)
         return {"test": _figures(0.3, refined=True), "refiner": str(w / "refiner"),
@@ -32,6 +38,7 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
     def fake_test(workdir, data, out, cache, overlays, instances, refiner=None,
                   templates_score=None):
         calls[out.name] = (workdir, data, refiner, templates_score)
+        calls["shared"].append(shared())
         # A worse "after" than "before" is reported as it is.
         return {"test": _figures(0.05, refined=refiner is not None),
                 "overlays": str(out / "test" / "overlays")}
@@ -54,6 +61,9 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
     report = demo.main(["--out", str(tmp_path / "out")])
 
     argv = calls["adapt"]
+    # The adapted, no-training and calibrated settings (the same images and parts) share the
+    # templates detector's searches; the zero-shot setting (other parts) does not.
+    assert calls["shared"] == [True, True, True, False] and not shared()
     assert float(argv[argv.index("--refiner-minutes") + 1]) == 0  # no 3PT-R by default
     assert argv[argv.index("--detector") + 1] == "cell"  # the dense cell detector
     assert argv[argv.index("--from") + 1] == "scratch"  # (3PT-D's, with --detector 3pt)

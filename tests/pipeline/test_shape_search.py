@@ -17,6 +17,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 import infer
+import infer.shape_detect as D
 from infer.refine import RefineObject
 from infer.shape_detect import ShapeSearchDetector
 from threept_jax.pipeline import contour as C
@@ -749,6 +750,46 @@ def test_a_cells_score_calibration_scores_its_parts(scene, cache, tmp_path):
         infer.load(detector="3pt", cache_dir=None, templates_score=path)
     with pytest.raises(ValueError, match="score weights of part 2"):
         ShapeSearchDetector(objects, score_weights={2: [1.0, 2.0]})
+
+
+def test_an_image_is_searched_once_whatever_the_score(scene, cache, monkeypatch):
+    """The verified candidates do not depend on the score weights: within
+    ``shared_searches`` a second detector of the same parts, depth range and settings, with a
+    cell's weights (part 1 scores every candidate 0.77), takes the first's candidates of an
+    image without fitting a template (read-only, equal to a search outside it) and scores them
+    with its own weights; another depth range or a changed image search again, and outside it
+    every call searches."""
+    from infer.shape_detect import shared_searches
+
+    img, _, objects, detector = scene
+    fits = []
+    fit = D.fit_templates
+    monkeypatch.setattr(D, "fit_templates", lambda *a, **k: fits.append(1) or fit(*a, **k))
+    alone = detector.candidates(img, K)
+    assert len(fits) == 2 and alone.xyxy.flags.writeable  # one fit per part
+    constant = [0.0] * len(S.FEATURES) + [float(np.log(0.77 / 0.23))]
+    other = ShapeSearchDetector(objects, depth_range=(330.0, 500.0), score_threshold=0.1,
+                                max_detections=10, settings=SMALL, cache_dir=cache / "contours",
+                                score_weights={1: constant})
+    farther = ShapeSearchDetector(objects, depth_range=(330.0, 600.0), settings=SMALL,
+                                  cache_dir=cache / "contours")
+    changed = img.copy()
+    changed[0, 0] ^= 1
+    with shared_searches():
+        first = detector.candidates(img, K)
+        assert len(fits) == 4
+        assert other.candidates(img, K.astype(np.float32)) is first and len(fits) == 4
+        assert not any(a.flags.writeable for a in first)
+        found = other.detect(img, K)
+        assert len(fits) == 4 and 1 in {d.obj_id for d in found}
+        assert all(d.score == pytest.approx(0.77, abs=1e-9) for d in found if d.obj_id == 1)
+        farther.candidates(img, K)
+        detector.candidates(changed, K)
+        assert len(fits) == 8
+    for a, b in zip(first, alone):
+        np.testing.assert_array_equal(a, b)
+    other.candidates(img, K)
+    assert len(fits) == 10
 
 
 def test_a_right_candidate_is_its_part_at_iou_one_half():
