@@ -347,7 +347,7 @@ def run_bop(args) -> dict:
         if initial_paths is not None:
             summary.update({f"{k}_initial": v for k, v in
                             evaluate(args, *initial_paths, targets).items()})
-        _print_scores(summary)
+        _print_scores(summary, args.out, stem)
     return summary
 
 
@@ -395,15 +395,38 @@ def evaluate(args, csv_path, json_path, targets) -> dict:
     return out
 
 
-def _print_scores(summary: dict) -> None:
-    shown = {}
-    for suffix in ("", "_initial"):
-        if f"pose{suffix}" in summary:
-            shown[f"6d{suffix}"] = {k: v for k, v in summary[f"pose{suffix}"].items()
-                                    if k != "per_object"}
-        if f"detection{suffix}" in summary:
-            shown[f"2d{suffix}"] = summary[f"detection{suffix}"]
-    print(json.dumps(shown, indent=1))
+def score_lines(summary: dict) -> list[str]:
+    """The evaluated scores of a run (:func:`evaluate`'s ``pose``, ``detection`` and their
+    ``_initial`` twins) as a table: a row per result file, the BOP 6D AP with its MSSD and MSPD
+    parts and AP-mm, COCO box and mask AP / AP50."""
+    rows = [(suffix, name) for suffix, name in (("", "refined" if "pose_initial" in summary
+                                                 else "results"),
+                                                ("_initial", "before refinement"))
+            if f"pose{suffix}" in summary]
+    pose = summary[f"pose{rows[0][0]}"]
+    columns = ("6D AP", "MSSD", "MSPD", "AP-mm", "box AP", "AP50", "mask AP", "AP50")
+    lines = [f"BOP scores ({pose['num_gt']} ground-truth instances):",
+             f"  {'':18s}" + "".join(f" {c:>7s}" for c in columns)]
+    for suffix, name in rows:
+        p = summary[f"pose{suffix}"]
+        d = summary.get(f"detection{suffix}") or {}
+        values = [p["ap"], p["ap_mssd"], p["ap_mspd"], p["ap_mm"],
+                  *(d[t][k] if t in d else None for t in ("bbox", "segm") for k in ("ap", "ap50"))]
+        lines.append(f"  {name:18s}" + "".join(f" {'-' if v is None else f'{v:.3f}':>7s}"
+                                               for v in values))
+    box = (summary.get("detection") or {}).get("bbox")
+    if box and "f1" in box:
+        lines.append(f"  box: best F1 {box['f1']:.3f} at score {box['f1_threshold']:.3f}")
+    return lines
+
+
+def _print_scores(summary: dict, out: pathlib.Path, stem: str) -> None:
+    """Prints :func:`score_lines` and writes every score (per object too) to
+    ``out/{stem}_scores.json``."""
+    path = out / f"{stem}_scores.json"
+    scores = {k: v for k, v in summary.items() if k.startswith(("pose", "detection"))}
+    path.write_text(json.dumps(scores, indent=1))
+    print("\n".join([*score_lines(summary), f"  every score, per object too: {path}"]))
 
 
 # --------------------------------------------------------------------------- --refine-only
@@ -508,5 +531,5 @@ def run_refine_only(args) -> dict:
         targets = evaluation_targets(args, ds, [])
         summary.update(evaluate(args, csv_path, json_path, targets))
         summary["pose_initial"] = evaluate(args, args.refine_only, None, targets)["pose"]
-        _print_scores(summary)
+        _print_scores(summary, args.out, stem)
     return summary

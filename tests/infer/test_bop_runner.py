@@ -269,7 +269,8 @@ def test_load_models_passes_the_refiner_run(monkeypatch, tmp_path):
     assert seen["refiner"] is None
 
 
-def test_single_view_run_writes_refined_and_initial_results(bop_setup, tmp_path, monkeypatch):
+def test_single_view_run_writes_refined_and_initial_results(bop_setup, tmp_path, monkeypatch,
+                                                            capsys):
     import infer
 
     root, _, _, models = bop_setup
@@ -288,7 +289,7 @@ def test_single_view_run_writes_refined_and_initial_results(bop_setup, tmp_path,
                              "--evaluate"))
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == ["overlays", "threept-initial_ds-test.csv", "threept-initial_ds-test.json",
-                     "threept_ds-test.csv", "threept_ds-test.json"]
+                     "threept_ds-test.csv", "threept_ds-test.json", "threept_ds-test_scores.json"]
     final = _by_image(bop.read_pose_results(tmp_path / "threept_ds-test.csv"))
     initial = _by_image(bop.read_pose_results(tmp_path / "threept-initial_ds-test.csv"))
     final2d = _by_image(bop.read_detection_results(tmp_path / "threept_ds-test.json"))
@@ -326,6 +327,31 @@ def test_single_view_run_writes_refined_and_initial_results(bop_setup, tmp_path,
         assert key in summary
     assert {"ap", "ap_mssd", "ap_mspd"} <= set(summary["pose"])
     assert {"bbox", "segm"} <= set(summary["detection_initial"])
+    # Every score in the file, per object too; the console's table has the headline ones.
+    written = json.loads((tmp_path / "threept_ds-test_scores.json").read_text())
+    assert written == json.loads(json.dumps({k: summary[k] for k in (
+        "pose", "detection", "pose_initial", "detection_initial")}))
+    out = capsys.readouterr().out
+    assert f"refined              {summary['pose']['ap']:.3f}" in out
+    assert f"before refinement    {summary['pose_initial']['ap']:.3f}" in out
+
+
+def test_score_lines_by_hand():
+    """The console's table of a hand-made summary: one row per result file, the 2D columns
+    a file without detections lacks as dashes."""
+    from infer.bop_runner import score_lines
+
+    pose = dict(ap=0.5, ap_mssd=0.25, ap_mspd=0.75, ap_mm=0.125, num_gt=7)
+    box = dict(ap=0.3, ap50=0.6, f1=0.8, f1_threshold=0.45)
+    lines = score_lines({"pose": pose, "detection": {"bbox": box},
+                         "pose_initial": dict(pose, ap=0.375)})
+    assert lines == [
+        "BOP scores (7 ground-truth instances):",
+        "                       6D AP    MSSD    MSPD   AP-mm  box AP    AP50 mask AP    AP50",
+        "  refined              0.500   0.250   0.750   0.125   0.300   0.600       -       -",
+        "  before refinement    0.375   0.250   0.750   0.125       -       -       -       -",
+        "  box: best F1 0.800 at score 0.450"]
+    assert score_lines({"pose": pose})[2].startswith("  results              0.500")
 
 
 def _project(T_cam_world, p_world):
