@@ -79,24 +79,26 @@ def zero_shot(out: pathlib.Path, test_scenes: int, seed: int) -> dict:
 
 def no_training(adapted_dir: pathlib.Path, out: pathlib.Path) -> dict:
     """The adapted setting's val and test scenes (the cell's parts), detected by the
-    training-free templates detector and refined by the contour refiner."""
+    training-free templates detector and refined by the contour refiner (the parts' contour
+    models from the adapted setting's cache)."""
     from infer.shipped import CONTOUR
     from train import adapt
 
-    return adapt.test(None, adapted_dir / "data", out, out / "cache", overlays=6,
+    return adapt.test(None, adapted_dir / "data", out, adapted_dir / "cache", overlays=6,
                       instances=adapt.INSTANCES, refiner=CONTOUR)
 
 
-def calibrated(adapted_dir: pathlib.Path, out: pathlib.Path, cache: pathlib.Path) -> dict:
+def calibrated(adapted_dir: pathlib.Path, out: pathlib.Path) -> dict:
     """The no-training setting with the templates detector's score calibrated on the cell: a
     logistic model per part fitted on the adapted setting's first training images (the one
     ``train.adapt`` fitted for the cell detector, ``adapted_dir/templates_score.json``, else
     fitted here and written there: :func:`train.adapt.calibrate`; no network), detections
-    refined by the contour refiner; ``cache``: the no-training setting's (its contour models
-    and compiled programs)."""
+    refined by the contour refiner (the parts' contour models from the adapted setting's
+    cache)."""
     from infer.shipped import CONTOUR
     from train import adapt
 
+    cache = adapted_dir / "cache"
     path = adapt.calibrate(adapted_dir / "data" / "train", adapted_dir / adapt.SCORE_FILE,
                            cache)
     return adapt.test(None, adapted_dir / "data", out, cache, overlays=6,
@@ -167,8 +169,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
               f"per part fitted on the adapted setting's training images -> "
               f"{args.out / 'calibrated'}", flush=True)
         start = time.perf_counter()
-        tuned = calibrated(args.out / "adapted", args.out / "calibrated",
-                           args.out / "no_training" / "cache")
+        tuned = calibrated(args.out / "adapted", args.out / "calibrated")
         print(f"   ({time.perf_counter() - start:.0f} s)")
 
     print(f"\n== zero-shot: the shipped models on 5 parts never seen in training -> "

@@ -39,6 +39,7 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
                   templates_score=None):
         calls[out.name] = (workdir, data, refiner, templates_score)
         calls["shared"].append(shared())
+        calls.setdefault("cache", {})[out.name] = cache
         # A worse "after" than "before" is reported as it is.
         return {"test": _figures(0.05, refined=refiner is not None),
                 "overlays": str(out / "test" / "overlays")}
@@ -78,6 +79,9 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
     score_file = tmp_path / "out" / "adapted" / "templates_score.json"
     assert calls["calibrate"] == data / "train"
     assert calls["calibrated"] == (None, data, "contour", score_file)
+    # Both read the parts' contour models the adapted setting's test wrote.
+    cache = tmp_path / "out" / "adapted" / "cache"
+    assert calls["cache"]["no_training"] == calls["cache"]["calibrated"] == cache
     assert json.loads(score_file.read_text()) == {"parts": {"1": [0.0] * 9}}
     saved = json.loads((tmp_path / "out" / "report.json").read_text())
     for setting in ("adapted", "no_training", "calibrated", "zero_shot"):
