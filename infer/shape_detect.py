@@ -108,7 +108,9 @@ def load_score_weights(path: str | os.PathLike) -> dict[int, tuple[float, ...]]:
 class Candidates(NamedTuple):
     """Verified candidates of one image, before scoring and NMS: refined poses [n, 4, 4]
     T_cam_obj, ``obj`` [n] (rows of the detector's ``objects``), outline boxes ``xyxy`` [n, 4]
-    (clipped to the image) and :data:`~threept_jax.pipeline.shape_search.FEATURES` [n, F]."""
+    (clipped to the image) and :data:`~threept_jax.pipeline.shape_search.FEATURES` [n, F].
+    Read them, do not write to them: inside :func:`shared_searches` they are shared and
+    read-only."""
 
     poses: np.ndarray
     obj: np.ndarray
@@ -131,7 +133,9 @@ def shared_searches():
     images' candidates are kept). Outside it every call searches, a repeated image too (what a
     timing of the warm path must see)."""
     global _SHARED
-    outer, _SHARED = _SHARED, OrderedDict()
+    outer = _SHARED
+    if outer is None:  # nested: the outer context's searches stay shared
+        _SHARED = OrderedDict()
     try:
         yield
     finally:
@@ -184,9 +188,10 @@ class ShapeSearchDetector:
         # What the candidates depend on, with the image and K (not the score weights).
         search = hashlib.sha256(repr((self.depth_range, self.settings)).encode())
         for o in self.objects:
-            search.update(str(o.obj_id).encode())
             for a in (o.mesh.vertices, o.mesh.faces):
-                search.update(np.ascontiguousarray(a).tobytes())
+                a = np.ascontiguousarray(a)
+                search.update(f"|{o.obj_id}|{a.dtype}{a.shape}|".encode())
+                search.update(a.tobytes())
         self._search = search
 
     def _depths(self, o: int, K: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
@@ -228,8 +233,9 @@ class ShapeSearchDetector:
         if shared is None:
             return self._candidates(image, K)
         key = self._search.copy()
-        for a in (np.array(image.shape), image, K):
-            key.update(a.tobytes())
+        key.update(f"|{image.shape}|".encode())
+        key.update(image.tobytes())
+        key.update(K.tobytes())
         key = key.hexdigest()
         if key in shared:
             shared.move_to_end(key)

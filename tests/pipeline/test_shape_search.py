@@ -757,8 +757,9 @@ def test_an_image_is_searched_once_whatever_the_score(scene, cache, monkeypatch)
     ``shared_searches`` a second detector of the same parts, depth range and settings, with a
     cell's weights (part 1 scores every candidate 0.77), takes the first's candidates of an
     image without fitting a template (read-only, equal to a search outside it) and scores them
-    with its own weights; another depth range or a changed image search again, and outside it
-    every call searches."""
+    with its own weights; another depth range, other parts, other intrinsics or a changed image
+    search again, a nested context shares the outer one's, and outside it every call
+    searches."""
     from infer.shape_detect import shared_searches
 
     img, _, objects, detector = scene
@@ -786,10 +787,18 @@ def test_an_image_is_searched_once_whatever_the_score(scene, cache, monkeypatch)
         farther.candidates(img, K)
         detector.candidates(changed, K)
         assert len(fits) == 8
+        box_only = ShapeSearchDetector(objects[:1], depth_range=(330.0, 500.0), settings=SMALL,
+                                       cache_dir=cache / "contours")
+        box_only.candidates(img, K)  # other parts
+        assert len(fits) == 9
+        detector.candidates(img, K * [[1.01], [1.01], [1.0]])  # other intrinsics
+        assert len(fits) == 11
+        with shared_searches():  # nested: the outer searches stay shared
+            assert detector.candidates(img, K) is first and len(fits) == 11
     for a, b in zip(first, alone):
         np.testing.assert_array_equal(a, b)
     other.candidates(img, K)
-    assert len(fits) == 10
+    assert len(fits) == 13
 
 
 def test_a_right_candidate_is_its_part_at_iou_one_half():
