@@ -50,13 +50,19 @@ OCCLUDER_SIDE = 320
 CONTOUR_CACHE_VERSION = 1
 
 
+def hash_mesh(h, mesh) -> None:
+    """Feeds a mesh's vertices and faces into the hashlib hash ``h``: what a key of work done
+    from the mesh (its contour models, a search with it) depends on."""
+    for a in (mesh.vertices, mesh.faces):
+        h.update(np.ascontiguousarray(a).tobytes())
+
+
 def _cached_contours(mesh, cache: pathlib.Path | None) -> dict:
     """``mesh_contours(mesh)``, read from / written to ``cache`` keyed by the mesh's arrays."""
     if cache is None:
         return mesh_contours(mesh)
     h = hashlib.sha256(f"contours-v{CONTOUR_CACHE_VERSION}".encode())
-    for a in (mesh.vertices, mesh.faces):
-        h.update(np.ascontiguousarray(a).tobytes())
+    hash_mesh(h, mesh)
     path = cache / f"{h.hexdigest()[:32]}.npz"
     if path.exists():
         try:

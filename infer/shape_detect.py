@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from infer.contour_refine import _cached_contours
+from infer.contour_refine import _cached_contours, hash_mesh
 from infer.detect import Detection, Detections
 from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.pipeline.contour import stack_contours
@@ -188,10 +188,8 @@ class ShapeSearchDetector:
         # What the candidates depend on, with the image and K (not the score weights).
         search = hashlib.sha256(repr((self.depth_range, self.settings)).encode())
         for o in self.objects:
-            for a in (o.mesh.vertices, o.mesh.faces):
-                a = np.ascontiguousarray(a)
-                search.update(f"|{o.obj_id}|{a.dtype}{a.shape}|".encode())
-                search.update(a.tobytes())
+            search.update(f"|{o.obj_id}|{len(o.mesh.vertices)}|".encode())
+            hash_mesh(search, o.mesh)
         self._search = search
 
     def _depths(self, o: int, K: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
