@@ -28,7 +28,7 @@ This is the detector alone; the BOP 6D AP after refinement comes from ``python -
 
     python bench/shape_search.py [--data DIR] [--images 8] [--per-image] [--no-depth-range]
         [--by-parts] [--ceiling] [--templates-score FILE] [--candidates 300] [--per-proposal 1]
-        [--contour-iterations 1] [--out F.json]
+        [--contour-iterations 1] [--no-verifier] [--out F.json]
 """
 
 from __future__ import annotations
@@ -118,7 +118,8 @@ def ceiling(detector, data, split_name, split, keys, per_image=None):
             continue
         hit = ss.right_candidates(c.xyxy, ids[c.obj], gt_box, gt_ids)  # [candidates, instances]
         found += int(hit.any(0).sum())
-        score = np.asarray(ss.calibrated_score(c.features, detector.score_weights[c.obj]))
+        score = np.asarray(ss.calibrated_score(c.features, detector.score_weights[c.obj],
+                                               c.evidence))
         for name, rank in (("score", score), ("perfect", hit.any(1) + 0.5 * score)):
             order = np.argsort(-rank)
             xywh = [[float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])]
@@ -173,6 +174,8 @@ def main(argv=None):
     p.add_argument("--templates-score", type=pathlib.Path, default=None, metavar="FILE",
                    help="the cell's own score calibration (python -m train.templates_score "
                         "--cell DATA --out FILE; never fitted on the images evaluated here)")
+    p.add_argument("--no-verifier", action="store_true",
+                   help="score by the outline features alone (no learned verifier)")
     p.add_argument("--ceiling", action="store_true",
                    help="diagnostic: instances with a right verified candidate, and the box "
                         "AP50 a perfect score would give on the same candidates")
@@ -197,11 +200,13 @@ def main(argv=None):
     settings = dataclasses.replace(settings, **over)
 
     weights = None if args.templates_score is None else load_score_weights(args.templates_score)
+    verifier = None if args.no_verifier else "shipped"
     t = time.perf_counter()
     objects = refine_objects(meshes)
     detector = ShapeSearchDetector(objects, depth_range=depth, score_threshold=0.0,
                                    max_detections=30, settings=settings,
-                                   cache_dir=args.cache_dir / "contours", score_weights=weights)
+                                   cache_dir=args.cache_dir / "contours", score_weights=weights,
+                                   verifier=verifier)
     onboard = (time.perf_counter() - t) / len(objects)
     per_image = None
     if args.per_image:
@@ -212,13 +217,14 @@ def main(argv=None):
             return ShapeSearchDetector([by_id[i] for i in ids], depth_range=depth,
                                        score_threshold=0.0, max_detections=30,
                                        settings=settings, cache_dir=args.cache_dir / "contours",
-                                       score_weights=weights)
+                                       score_weights=weights, verifier=verifier)
     dets, seconds = run(detector.detect, split, keys, per_image)
     scene = split.scene(keys[-1][0])
     stages = stage_seconds(detector, scene.image(keys[-1][1]), scene.cameras[keys[-1][1]].K)
     ap50, ap = box_ap(args.data, args.split, dets)
     result = {"data": str(args.data), "images": len(keys), "parts": len(objects),
               "templates_score": None if weights is None else str(args.templates_score),
+              "verifier": verifier,
               "per_image": args.per_image,
               "depth_range": depth,
               "settings": {k: v for k, v in dataclasses.asdict(settings).items()

@@ -11,6 +11,13 @@ scores and its outline's shape and surroundings
 (:func:`~threept_jax.pipeline.shape_search.calibrated_score`, fitted by ``python -m
 train.templates_score`` on cells of parts no evaluation uses).
 
+``verifier="shipped"`` adds a learned verifier's correction to the score
+(``models/templates-verifier``, :class:`threept_jax.models.verifier.CandidateVerifier`: the
+image around each candidate beside its part rendered at its pose, trained by ``python -m
+train.templates_verifier`` on cells of other parts). It is not the default: on five held-out
+sets it raised the mean box AP50 from 0.444 to 0.468 but lowered two of them, and its renders
+cost time (docs/benchmarks.md, "A learned verifier inside the outline").
+
 A cell can calibrate the score on scenes of its own parts (``python -m train.templates_score
 --cell DATA``: a logistic model per part, no network): :func:`load_score_weights` reads the
 file it writes, ``ShapeSearchDetector(score_weights=...)`` scores each part's candidates with
@@ -37,10 +44,13 @@ import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import nnx
 
 from infer.contour_refine import _cached_contours, hash_mesh
 from infer.detect import Detection, Detections
+from threept_jax.data.pretrained import VERIFIER_DIR, load_verifier, module_arrays
 from threept_jax.geometry.validate import validate_intrinsics
+from threept_jax.models.verifier import CandidateVerifier
 from threept_jax.pipeline.contour import stack_contours
 from threept_jax.pipeline.shape_search import (
     FEATURES,
@@ -53,11 +63,14 @@ from threept_jax.pipeline.shape_search import (
     outline_features,
     poses_from_fit,
     proposals,
+    score_inputs,
     select_candidates,
     shape_templates,
     stack_templates,
+    verifier_inputs,
     verify,
 )
+from threept_jax.render.mesh import bucket_size, prepare_mesh, to_raster_mesh
 
 #: Without a depth range, objects are searched from this projected diameter (px) to the image's
 #: longer side.
@@ -108,14 +121,41 @@ def load_score_weights(path: str | os.PathLike) -> dict[int, tuple[float, ...]]:
 class Candidates(NamedTuple):
     """Verified candidates of one image, before scoring and NMS: refined poses [n, 4, 4]
     T_cam_obj, ``obj`` [n] (rows of the detector's ``objects``), outline boxes ``xyxy`` [n, 4]
-    (clipped to the image) and :data:`~threept_jax.pipeline.shape_search.FEATURES` [n, F].
-    Read them, do not write to them: inside :func:`shared_searches` they are shared and
+    (clipped to the image), :data:`~threept_jax.pipeline.shape_search.FEATURES` [n, F] and
+    the verifier's ``evidence`` [n] (its correction to the score's log-odds; zeros without
+    one). Read them, do not write to them: inside :func:`shared_searches` they are shared and
     read-only."""
 
     poses: np.ndarray
     obj: np.ndarray
     xyxy: np.ndarray
     features: np.ndarray
+    evidence: np.ndarray
+
+
+#: The shipped verifier, loaded once per process (:func:`shipped_verifier`).
+_SHIPPED_VERIFIER: list[CandidateVerifier] = []
+
+
+def shipped_verifier() -> CandidateVerifier:
+    """The verifier of ``models/templates-verifier`` (checked against its ``SOURCE.json``),
+    loaded on first use."""
+    if not _SHIPPED_VERIFIER:
+        _SHIPPED_VERIFIER.append(load_verifier(VERIFIER_DIR))
+    return _SHIPPED_VERIFIER[0]
+
+
+def raster_meshes(objects: Sequence) -> list:
+    """The parts' meshes as the verifier's renders draw them (decimated to 4096 faces, one face
+    bucket for every part under it: one compiled render for all)."""
+    prepared = [prepare_mesh(o.mesh, max_faces=4096, texture_size=None) for o in objects]
+    bucket = bucket_size(max(4096, *(p.num_faces for p in prepared)))
+    return [to_raster_mesh(p, face_bucket=bucket) for p in prepared]
+
+
+@nnx.jit
+def _evidence(verifier: CandidateVerifier, crops, renders, inputs):
+    return verifier(crops, renders, inputs)
 
 
 #: Inside :func:`shared_searches`: the verified candidates (or None) of the images searched
@@ -155,7 +195,8 @@ class ShapeSearchDetector:
                  score_threshold: float = SCORE_THRESHOLD, max_detections: int = 100,
                  settings: ShapeSearchSettings | None = None,
                  cache_dir: str | os.PathLike | None = None,
-                 score_weights: Mapping[int, Sequence[float]] | None = None):
+                 score_weights: Mapping[int, Sequence[float]] | None = None,
+                 verifier: CandidateVerifier | str | None = None):
         if not objects:
             raise ValueError("no objects to detect: give at least one mesh")
         if depth_range is not None:
@@ -185,11 +226,23 @@ class ShapeSearchDetector:
         self.templates = jax.tree.map(jnp.asarray, templates)
         self.centers = np.stack([c["center"] for c in contours])
         self.diameters = np.array([2.0 * float(c["radius"]) for c in contours])
+        if isinstance(verifier, str):
+            if verifier != "shipped":
+                raise ValueError(f"verifier must be a CandidateVerifier, 'shipped' or None, "
+                                 f"got {verifier!r}")
+            verifier = shipped_verifier()
+        self.verifier = verifier
         # What the candidates depend on, with the image and K (not the score weights).
         search = hashlib.sha256(repr((self.depth_range, self.settings)).encode())
         for o in self.objects:
             search.update(f"|{o.obj_id}|{len(o.mesh.vertices)}|".encode())
             hash_mesh(search, o.mesh)
+        self.rasters = []
+        if verifier is not None:
+            for k, a in sorted(module_arrays(verifier).items()):
+                search.update(f"|{k}|".encode())
+                search.update(np.ascontiguousarray(a).tobytes())
+            self.rasters = raster_meshes(self.objects)
         self._search = search
 
     def _depths(self, o: int, K: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
@@ -203,8 +256,9 @@ class ShapeSearchDetector:
                 obj: np.ndarray, template: np.ndarray):
         """Stage 3 of m <= ``candidates`` poses [m, 4, 4] of parts ``obj`` [m] (rows of
         ``objects``) fitted with template scores ``template`` [m]: refined poses [m, 4, 4],
-        outline boxes xyxy [m, 4] and :data:`FEATURES` [m, F] (NumPy). Padded to
-        ``candidates`` (one compiled verification per image size)."""
+        outline boxes xyxy [m, 4] (clipped to the image), :data:`FEATURES` [m, F] and the
+        verifier's evidence [m] (NumPy). Padded to ``candidates`` (one compiled verification
+        per image size)."""
         s = self.settings
         m = len(poses)
         pad = np.concatenate([np.arange(m), np.zeros(s.candidates - m, np.int64)])
@@ -215,7 +269,19 @@ class ShapeSearchDetector:
             o, settings=s.contour, lines=s.lines)
         features = outline_features(self.model, response, K32, refined, o, contour,
                                     jnp.asarray(np.asarray(template)[pad], jnp.float32), lines)
-        return tuple(np.asarray(a)[:m] for a in (refined, xyxy, features))
+        refined, xyxy, features = (np.asarray(a)[:m] for a in (refined, xyxy, features))
+        # Boxes of what the image shows: a part cut by the image's side is boxed to it.
+        hw = image.shape[:2]
+        xyxy = np.clip(xyxy, 0, np.array([hw[1], hw[0], hw[1], hw[0]], np.float32))
+        evidence = np.zeros(m, np.float32)
+        if self.verifier is not None and m:
+            crops, renders = verifier_inputs(image, K, refined, np.asarray(obj), xyxy,
+                                             self.rasters)
+            inputs = score_inputs(features).astype(np.float32)
+            # Padded to ``candidates``: one compiled verifier.
+            evidence = np.asarray(_evidence(self.verifier, crops[pad], renders[pad],
+                                            inputs[pad]))[:m]
+        return refined, xyxy, features, evidence
 
     def candidates(self, image: np.ndarray, K: np.ndarray) -> Candidates | None:
         """The verified candidates of one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3]
@@ -280,11 +346,9 @@ class ShapeSearchDetector:
             return None
         template, obj, poses = (np.array(a) for a in zip(*found))
         chosen = select_candidates(template, obj, s.candidates)
-        refined, xyxy, features = self._verify(image, response, K, poses[chosen], obj[chosen],
-                                               template[chosen])
-        # Boxes of what the image shows: a part cut by the image's side is boxed to it.
-        xyxy = np.clip(xyxy, 0, np.array([hw[1], hw[0], hw[1], hw[0]], np.float32))
-        return Candidates(refined, obj[chosen].astype(np.int32), xyxy, features)
+        refined, xyxy, features, evidence = self._verify(image, response, K, poses[chosen],
+                                                         obj[chosen], template[chosen])
+        return Candidates(refined, obj[chosen].astype(np.int32), xyxy, features, evidence)
 
     def detect(self, image: np.ndarray, K: np.ndarray) -> Detections:
         """Detections in one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3] (pixels of
@@ -293,7 +357,7 @@ class ShapeSearchDetector:
         if c is None:
             return Detections()
         s = self.settings
-        scores = np.asarray(calibrated_score(c.features, self.score_weights[c.obj]))
+        scores = np.asarray(calibrated_score(c.features, self.score_weights[c.obj], c.evidence))
         refined, obj, xyxy = c.poses, c.obj, c.xyxy
         finite = np.isfinite(scores) & np.isfinite(xyxy).all(1)
         order = [i for i in np.argsort(-np.where(finite, scores, -np.inf)) if finite[i]]
@@ -372,9 +436,10 @@ class ShapeSearchDetector:
                 taken.append(c)
                 per_box[c[1]] += 1
         template, cand_box, cand_pose = (np.array(a) for a in zip(*taken))
-        refined, _, features = self._verify(image, response, K, cand_pose, obj[cand_box],
-                                            template)
-        calibrated = np.asarray(calibrated_score(features, self.score_weights[obj[cand_box]]))
+        refined, _, features, evidence = self._verify(image, response, K, cand_pose,
+                                                      obj[cand_box], template)
+        calibrated = np.asarray(calibrated_score(features, self.score_weights[obj[cand_box]],
+                                                 evidence))
         for i in range(len(taken)):
             b = cand_box[i]
             if np.isfinite(calibrated[i]) and calibrated[i] > scores[b]:

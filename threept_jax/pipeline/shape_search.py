@@ -27,7 +27,10 @@ every learned detector must beat). Four stages per image:
    similarity, thinness, elongation, size and the clutter around it) whose
    :data:`SCORE_WEIGHTS` were fitted on cells of other parts (``python -m
    train.templates_score``), or per part on scenes of a cell's own parts
-   (:func:`fit_part_weights`, ``python -m train.templates_score --cell``); the refined poses'
+   (:func:`fit_part_weights`, ``python -m train.templates_score --cell``), plus the learned
+   verifier's correction to its log-odds when one is given
+   (:class:`threept_jax.models.verifier.CandidateVerifier` on :func:`verifier_inputs`: the
+   image around the candidate beside the part rendered at its pose); the refined poses'
    boxes are merged by NMS across parts (one part per place).
 
 Shapes: O objects, R templates per object (views x in-plane turns), n outline points per
@@ -51,7 +54,11 @@ import numpy as np
 
 from threept_jax.geometry.boxes import box_iou
 from threept_jax.geometry.grids import viewpoint_rotation
+from threept_jax.models.verifier import CROP
 from threept_jax.pipeline.contour import ContourModel, ContourSettings, refine_poses
+from threept_jax.render.crop import crop_and_resize
+from threept_jax.render.mesh import RasterMesh
+from threept_jax.render.raster import render
 
 Array = jax.Array
 
@@ -494,29 +501,33 @@ def score_inputs(features: np.ndarray) -> np.ndarray:
     return np.concatenate([np.log(p / (1 - p)), f[:, 3:]], 1)
 
 
-def calibrated_score(features: np.ndarray, weights=SCORE_WEIGHTS) -> np.ndarray:
+def calibrated_score(features: np.ndarray, weights=SCORE_WEIGHTS, evidence=0.0) -> np.ndarray:
     """[P] the probability that each verified candidate (:func:`outline_features` [P, F]) is
     a right detection (its part, box IoU >= 0.5), by a logistic model over
     :func:`score_inputs` with ``weights`` [F + 1] (the last is the bias), or [P, F + 1]: each
-    candidate its own (its part's, :func:`fit_part_weights`)."""
+    candidate its own (its part's, :func:`fit_part_weights`); ``evidence`` [P] (or a scalar)
+    is added to the log-odds: the learned verifier's correction (0: none)."""
     w = np.asarray(weights, np.float64)
-    z = np.sum(score_inputs(features) * w[..., :-1], -1) + w[..., -1]
+    z = np.sum(score_inputs(features) * w[..., :-1], -1) + w[..., -1] + np.asarray(evidence)
     return 1.0 / (1.0 + np.exp(-z))
 
 
-def fit_score_weights(features: np.ndarray, right: np.ndarray, l2: float = 1e-2) -> np.ndarray:
+def fit_score_weights(features: np.ndarray, right: np.ndarray, l2: float = 1e-2,
+                      evidence=0.0) -> np.ndarray:
     """[F + 1] the weights of :func:`calibrated_score` that fit candidates' features [P, F] to
     whether each was right [P] (bool): L2-regularised logistic regression (``l2`` on the
-    weights of the standardised inputs, not the bias) by SciPy's L-BFGS-B."""
+    weights of the standardised inputs, not the bias) by SciPy's L-BFGS-B, with the verifier's
+    ``evidence`` [P] as a fixed offset of the log-odds (what :func:`calibrated_score` adds)."""
     from scipy.optimize import minimize
 
     X = score_inputs(features)
     y = np.asarray(right, np.float64)
+    offset = np.broadcast_to(np.asarray(evidence, np.float64), y.shape)
     mu, sd = X.mean(0), X.std(0) + 1e-9
     Z = np.concatenate([(X - mu) / sd, np.ones((len(X), 1))], 1)
 
     def loss(w):
-        z = Z @ w
+        z = Z @ w + offset
         p = 1.0 / (1.0 + np.exp(-z))
         reg = np.concatenate([w[:-1], [0.0]])
         return (np.sum(np.logaddexp(0.0, z) - y * z) / len(y) + l2 * np.sum(reg ** 2),
@@ -542,19 +553,22 @@ MIN_PER_PART = 10
 
 
 def fit_part_weights(features: np.ndarray, right: np.ndarray, parts: np.ndarray,
-                     l2: float = 1e-2, min_count: int = MIN_PER_PART) -> dict[int, np.ndarray]:
+                     l2: float = 1e-2, min_count: int = MIN_PER_PART,
+                     evidence=0.0) -> dict[int, np.ndarray]:
     """{part: [F + 1]} the weights of :func:`calibrated_score` fitted on each part's candidates
     alone (:func:`fit_score_weights` per part; ``parts`` [P] the candidates' parts): a cell's
     calibration on scenes of its own parts, where what a right candidate looks like differs
     from part to part (a plate's outline is as elongated as the tray's squares seen
     obliquely, a gear's is round). A part with fewer than ``min_count`` right or wrong
-    candidates is left out: it keeps the shared weights."""
+    candidates is left out: it keeps the shared weights. ``evidence`` [P]: the verifier's
+    corrections, fixed offsets of the log-odds (:func:`fit_score_weights`)."""
     features, right, parts = np.asarray(features), np.asarray(right, bool), np.asarray(parts)
+    evidence = np.broadcast_to(np.asarray(evidence, np.float64), parts.shape)
     out = {}
     for p in np.unique(parts):
         mine = parts == p
         if min(right[mine].sum(), (~right[mine]).sum()) >= min_count:
-            out[int(p)] = fit_score_weights(features[mine], right[mine], l2)
+            out[int(p)] = fit_score_weights(features[mine], right[mine], l2, evidence[mine])
     return out
 
 
@@ -577,3 +591,44 @@ def verify(model: ContourModel, image: Array, K: Array, poses: Array, obj: Array
                        jnp.ones((P, 1), bool), settings)
     return (res.poses, res.scores, outline_boxes(full, res.poses, obj, K),
             res.lines / model.points.shape[2])
+
+
+def verifier_boxes(xyxy: np.ndarray, margin: float = 1.3, min_side: float = 16.0) -> np.ndarray:
+    """[P, 4] xyxy the square crop boxes the verifier reads: centred on each outline box
+    ``xyxy`` [P, 4], ``margin`` times its longer side (at least ``min_side`` px), running out of
+    the image where the outline does (the crop is zero there)."""
+    xyxy = np.asarray(xyxy, np.float64).reshape(-1, 4)
+    c = (xyxy[:, :2] + xyxy[:, 2:]) / 2
+    side = np.maximum(margin * np.max(xyxy[:, 2:] - xyxy[:, :2], 1), min_side)
+    return np.concatenate([c - side[:, None] / 2, c + side[:, None] / 2], 1).astype(np.float32)
+
+
+def verifier_inputs(image: np.ndarray, K: np.ndarray, poses: np.ndarray, obj: np.ndarray,
+                    xyxy: np.ndarray, meshes: Sequence[RasterMesh]) -> tuple[np.ndarray, np.ndarray]:
+    """What :class:`~threept_jax.models.verifier.CandidateVerifier` reads of P candidates of an
+    image [H, W, 3] uint8 with K [3, 3]: the image in each candidate's :func:`verifier_boxes`
+    box (bilinear, [P, CROP, CROP, 3] uint8) and its part ``meshes[obj]`` rendered at its pose
+    ``poses`` [P, 4, 4] T_cam_obj with that crop's intrinsics ([P, CROP, CROP, 3] uint8:
+    silhouette, geometric edges, |normal z| inside the silhouette, 0-255). Each part's poses
+    are rendered in one call padded to a power of two (a few compiled renders per mesh size)."""
+    boxes = verifier_boxes(xyxy)
+    n = len(boxes)
+    renders = np.zeros((n, CROP, CROP, 3), np.uint8)
+    if not n:
+        return np.zeros((0, CROP, CROP, 3), np.uint8), renders
+    crops, Kc = crop_and_resize(jnp.asarray(image), jnp.asarray(boxes), (CROP, CROP),
+                                K=jnp.asarray(K, jnp.float32))
+    crops = np.clip(np.asarray(crops), 0, 255).astype(np.uint8)
+    Kc, poses, obj = np.asarray(Kc), np.asarray(poses, np.float32), np.asarray(obj)
+    for o in np.unique(obj):
+        rows = np.flatnonzero(obj == o)
+        idx = np.concatenate([rows, np.full((1 << (len(rows) - 1).bit_length()) - len(rows),
+                                            rows[0])])
+        out = render(meshes[int(o)], poses[idx], Kc[idx], (CROP, CROP),
+                     ("mask", "edge", "normal"))
+        mask = np.asarray(out["mask"])[:len(rows)]
+        renders[rows, ..., 0] = mask * 255
+        renders[rows, ..., 1] = np.asarray(out["edge"])[:len(rows)] * 255
+        shade = np.clip(np.abs(np.asarray(out["normal"])[:len(rows), ..., 2]) * 255, 0, 255)
+        renders[rows, ..., 2] = shade * mask
+    return crops, renders
