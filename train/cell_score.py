@@ -23,6 +23,19 @@ class TooFewCandidates(ValueError):
     what and how to fix it): ``train.adapt`` keeps the shared score, the command exits."""
 
 
+def cell_parts(data: pathlib.Path, split_name: str):
+    """A BOP dataset's split, its cell's depth range (None without a ``cell.json``) and its
+    parts ``{obj_id: RefineObject}``: what a search of its images needs."""
+    from infer.refine import refine_objects
+    from threept_jax.data import bop
+
+    cell = bop.load_cell(data)
+    depth = None if cell is None else tuple(cell["depth_range_mm"])
+    dataset = bop.BopDataset(data)
+    objects = refine_objects({k: m.path for k, m in dataset.models().items()})
+    return dataset.split(split_name), depth, {o.obj_id: o for o in objects}
+
+
 def collect(data: pathlib.Path, per_image: bool, cache: pathlib.Path, name: str,
             split_name: str = "val_pbr", max_images: int | None = None,
             verifier: str | None = None):
@@ -30,17 +43,10 @@ def collect(data: pathlib.Path, per_image: bool, cache: pathlib.Path, name: str,
     (zeros without one; ``verifier``: the detector's argument) of every verified candidate of
     every image (the first
     ``max_images``) of the dataset's ``split_name``."""
-    from infer.refine import refine_objects
     from infer.shape_detect import ShapeSearchDetector
-    from threept_jax.data import bop
     from threept_jax.pipeline.shape_search import right_candidates
 
-    dataset = bop.BopDataset(data)
-    split = dataset.split(split_name)
-    cell = bop.load_cell(data)
-    depth = None if cell is None else tuple(cell["depth_range_mm"])
-    objects = refine_objects({k: m.path for k, m in dataset.models().items()})
-    by_id = {o.obj_id: o for o in objects}
+    split, depth, by_id = cell_parts(data, split_name)
     detectors = {}
 
     def detector(ids):

@@ -102,18 +102,12 @@ def collect(data: pathlib.Path, split_name: str, per_image: bool, cache: pathlib
     ``right``, ``parts``, ``crops``, ``renders``)."""
     from tqdm import tqdm
 
-    from infer.refine import refine_objects
     from infer.shape_detect import ShapeSearchDetector, raster_meshes
-    from threept_jax.data import bop
     from threept_jax.data.files import atomic_savez
     from threept_jax.pipeline.shape_search import right_candidates, verifier_inputs
+    from train.cell_score import cell_parts
 
-    dataset = bop.BopDataset(data)
-    split = dataset.split(split_name)
-    cell = bop.load_cell(data)
-    depth = None if cell is None else tuple(cell["depth_range_mm"])
-    objects = refine_objects({k: m.path for k, m in dataset.models().items()})
-    by_id = {o.obj_id: o for o in objects}
+    split, depth, by_id = cell_parts(data, split_name)
     detectors, acc = {}, {k: [] for k in ("features", "right", "parts", "crops", "renders")}
     keys = [(s, im) for s in split.scene_ids for im in split.scene(s).image_ids]
     for s, im in tqdm(keys, desc=out.stem, leave=False):
