@@ -170,14 +170,13 @@ def train(workdir: pathlib.Path, train_files: Sequence[pathlib.Path],
 
     from threept_jax.data import dense_run
     from threept_jax.models.verifier import CandidateVerifier
-    from threept_jax.pipeline.shape_search import SCORE_WEIGHTS, score_inputs
+    from threept_jax.pipeline.shape_search import score_inputs, score_logit
 
     tr, va = load(train_files), load(val_files)
-    w = np.asarray(SCORE_WEIGHTS, np.float64)
 
     def inputs(d):
-        x = score_inputs(d["features"])
-        return x.astype(np.float32), (x @ w[:-1] + w[-1]).astype(np.float32)
+        return (score_inputs(d["features"]).astype(np.float32),
+                score_logit(d["features"]).astype(np.float32))
 
     x_tr, base_tr = inputs(tr)
     x_va, base_va = inputs(va)

@@ -501,14 +501,21 @@ def score_inputs(features: np.ndarray) -> np.ndarray:
     return np.concatenate([np.log(p / (1 - p)), f[:, 3:]], 1)
 
 
+def score_logit(features: np.ndarray, weights=SCORE_WEIGHTS) -> np.ndarray:
+    """[P] the log-odds of the logistic model over :func:`score_inputs` of candidates'
+    :func:`outline_features` [P, F] with ``weights`` [F + 1] (the last is the bias), or
+    [P, F + 1]: each candidate its own (its part's, :func:`fit_part_weights`). What the
+    learned verifier's correction is added to."""
+    w = np.asarray(weights, np.float64)
+    return np.sum(score_inputs(features) * w[..., :-1], -1) + w[..., -1]
+
+
 def calibrated_score(features: np.ndarray, weights=SCORE_WEIGHTS, evidence=0.0) -> np.ndarray:
     """[P] the probability that each verified candidate (:func:`outline_features` [P, F]) is
-    a right detection (its part, box IoU >= 0.5), by a logistic model over
-    :func:`score_inputs` with ``weights`` [F + 1] (the last is the bias), or [P, F + 1]: each
-    candidate its own (its part's, :func:`fit_part_weights`); ``evidence`` [P] (or a scalar)
-    is added to the log-odds: the learned verifier's correction (0: none)."""
-    w = np.asarray(weights, np.float64)
-    z = np.sum(score_inputs(features) * w[..., :-1], -1) + w[..., -1] + np.asarray(evidence)
+    a right detection (its part, box IoU >= 0.5): the logistic model's :func:`score_logit`
+    with ``weights``, plus ``evidence`` [P] (or a scalar), the learned verifier's correction
+    of the log-odds (0: none)."""
+    z = score_logit(features, weights) + np.asarray(evidence)
     return 1.0 / (1.0 + np.exp(-z))
 
 
