@@ -15,8 +15,8 @@ train.templates_score`` on cells of parts no evaluation uses).
 (``models/templates-verifier``, :class:`threept_jax.models.verifier.CandidateVerifier`: the
 image around each candidate beside its part rendered at its pose, trained by ``python -m
 train.templates_verifier`` on cells of other parts). It is not the default: on five held-out
-sets it raised the mean box AP50 from 0.444 to 0.468 but lowered two of them, and its renders
-cost time (docs/benchmarks.md, "A learned verifier inside the outline").
+sets of 8 images it raises the mean box AP50 from 0.444 to 0.474 but lowers one of them, and
+costs 0.32-0.37 s an image (docs/benchmarks.md, "A learned verifier inside the outline").
 
 A cell can calibrate the score on scenes of its own parts (``python -m train.templates_score
 --cell DATA``: a logistic model per part, no network): :func:`load_score_weights` reads the
@@ -145,11 +145,18 @@ def shipped_verifier() -> CandidateVerifier:
     return _SHIPPED_VERIFIER[0]
 
 
+#: Faces of the meshes the verifier's 64 px renders draw: T-LESS and ITODD parts decimated from
+#: 4096 to 1024 faces render 2.5x faster with the same box AP50 (docs/benchmarks.md).
+VERIFIER_FACES = 1024
+
+
 def raster_meshes(objects: Sequence) -> list:
-    """The parts' meshes as the verifier's renders draw them (decimated to 4096 faces, one face
-    bucket for every part under it: one compiled render for all)."""
-    prepared = [prepare_mesh(o.mesh, max_faces=4096, texture_size=None) for o in objects]
-    bucket = bucket_size(max(4096, *(p.num_faces for p in prepared)))
+    """The parts' meshes as the verifier's renders draw them (decimated to
+    :data:`VERIFIER_FACES`, one face bucket for every part under it: one compiled render for
+    all)."""
+    prepared = [prepare_mesh(o.mesh, max_faces=VERIFIER_FACES, texture_size=None)
+                for o in objects]
+    bucket = bucket_size(max(VERIFIER_FACES, *(p.num_faces for p in prepared)))
     return [to_raster_mesh(p, face_bucket=bucket) for p in prepared]
 
 
