@@ -94,7 +94,8 @@ class Models:
       shape_search: the training-free detector's settings (``load(detector="templates")``,
         :class:`infer.shape_detect.ShapeSearchDetector`), None with 3PT-D; templates_score: its
         per-part score weights of a cell's calibration (``load(templates_score=FILE)``), None:
-        the shared ones.
+        the shared ones; templates_verifier: whether the templates' score adds the shipped
+        learned verifier's correction (``load(templates_verifier=True)``).
     """
 
     detector: Detector | None
@@ -108,6 +109,7 @@ class Models:
     cache_dir: pathlib.Path | None = None
     shape_search: ShapeSearchSettings | None = None
     templates_score: dict[int, tuple[float, ...]] | None = None
+    templates_verifier: bool = False
     cell: tuple[Any, list[int]] | None = None
     # Per-object-set caches; not init fields, so a dataclasses.replace starts empty ones.
     _scene_detectors: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
@@ -161,15 +163,21 @@ class Models:
             if self.cell is not None:
                 self._scene_detectors[key] = CellDetector(
                     *self.cell, objects, settings=self.shape_search, cache_dir=cache,
-                    score_weights=self.templates_score, **options)
+                    score_weights=self.templates_score, verifier=self.verifier_option(),
+                    **options)
             elif self.shape_search is not None:
                 self._scene_detectors[key] = ShapeSearchDetector(
                     objects, settings=self.shape_search, cache_dir=cache,
-                    score_weights=self.templates_score, **options)
+                    score_weights=self.templates_score, verifier=self.verifier_option(),
+                    **options)
             else:
                 self._scene_detectors[key] = SceneDetector(self.detector, self.config, objects,
                                                            **options)
         return self._scene_detectors[key]
+
+    def verifier_option(self) -> str | None:
+        """The templates detector's ``verifier`` argument: ``"shipped"`` or None."""
+        return "shipped" if self.templates_verifier else None
 
     def pose_renderer(self, objects: Sequence[OnboardedObject]) -> PoseRenderer:
         """The mask renderer of these objects, built once (its meshes are prepared once)."""
@@ -182,7 +190,7 @@ class Models:
 def load(workdir=None, step: int | str = "best", *, refiner=None,
          refiner_step: int | str = "best", cache_dir=DEFAULT_CACHE,
          num_templates: int = ONBOARD_TEMPLATES, detector: str | None = None,
-         templates_score=None) -> Models:
+         templates_score=None, templates_verifier: bool = False) -> Models:
     """The models inference runs: a detector and a refiner.
 
     ``detector``: ``"templates"``, the training-free detector
@@ -208,7 +216,11 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
     ``templates_score``: a cell's calibration of the templates detector's score (the file
     ``python -m train.templates_score --cell DATA`` writes: a logistic model per part, fitted
     on scenes of the cell's own parts; docs/inference.md, "Which detector"), or None: the
-    shared weights fitted on cells of other parts."""
+    shared weights fitted on cells of other parts.
+
+    ``templates_verifier``: add the shipped learned verifier's correction to the templates'
+    score (``models/templates-verifier``, its card says what it does and costs; not the
+    default: docs/inference.md, "An optional learned verifier")."""
     if detector is None:
         detector = default_detector(workdir)
     if detector not in DETECTORS:
@@ -229,8 +241,13 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
         raise ValueError("templates_score calibrates the templates detector (alone or in the "
                          "cell detector); 3PT-D scores with its network: drop it or pass "
                          "detector='templates'")
+    if templates_verifier and detector == "3pt":
+        raise ValueError("templates_verifier checks the templates detector's candidates (alone "
+                         "or in the cell detector); 3PT-D scores with its network: drop it or "
+                         "pass detector='templates'")
     if detector in ("cell", "templates"):
         models.shape_search = ShapeSearchSettings()
+        models.templates_verifier = bool(templates_verifier)
         if templates_score is not None:
             models.templates_score = load_score_weights(templates_score)
     if detector == "cell":

@@ -78,7 +78,7 @@ class CellDetector:
     alone (1.6 s an image on 2 cores, the merged path 2.9 s). ``max_detections``: per image,
     after the merge. ``score_weights``: a cell's calibration of the templates' score
     (:func:`infer.shape_detect.load_score_weights`), for the poses' scores and the templates'
-    detections."""
+    detections; ``verifier``: the templates detector's (``"shipped"`` or None)."""
 
     def __init__(self, network: DenseDetector, class_ids: Sequence[int], objects: Sequence, *,
                  depth_range: tuple[float, float] | None = None,
@@ -86,7 +86,8 @@ class CellDetector:
                  templates_threshold: float | None = TEMPLATES_SCORE_THRESHOLD,
                  max_detections: int = 100, settings: ShapeSearchSettings | None = None,
                  cache_dir: str | os.PathLike | None = None,
-                 score_weights: Mapping[int, Sequence[float]] | None = None):
+                 score_weights: Mapping[int, Sequence[float]] | None = None,
+                 verifier: str | None = None):
         if not objects:
             raise ValueError("no objects to detect: give at least one mesh")
         class_ids = [int(c) for c in class_ids]
@@ -99,7 +100,7 @@ class CellDetector:
         self.shapes = ShapeSearchDetector(
             objects, depth_range=depth_range, settings=settings, cache_dir=cache_dir,
             score_threshold=np.inf if templates_threshold is None else templates_threshold,
-            max_detections=max_detections, score_weights=score_weights)
+            max_detections=max_detections, score_weights=score_weights, verifier=verifier)
         self.objects = self.shapes.objects
         self.score_threshold = float(score_threshold)
         self.max_detections = int(max_detections)

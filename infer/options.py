@@ -102,6 +102,11 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
                         "model per part, no network), with --detector templates or cell (its "
                         "templates' poses and detections); default: the shared score, fitted "
                         "on cells of other parts")
+    p.add_argument("--templates-verifier", action="store_true",
+                   help="add the shipped learned verifier's correction to the templates' score "
+                        "(models/templates-verifier: the image around each candidate against "
+                        "its part rendered at its pose), with --detector templates or cell; "
+                        "about 0.35 s more an image; not the default (docs/inference.md)")
     p.add_argument("--step", type=checkpoint_step, default="best",
                    help="checkpoint: best, latest or a step number")
     p.add_argument("--num-templates", type=int_at_least(1), default=ONBOARD_TEMPLATES,
@@ -192,6 +197,10 @@ def load_models(args, detector: bool = True):
         raise ValueError("--templates-score calibrates the templates detector (alone or in "
                          "the cell detector); 3PT-D scores with its network: drop it or pass "
                          "--detector templates")
+    if getattr(args, "templates_verifier", False) and kind == "3pt":
+        raise ValueError("--templates-verifier checks the templates detector's candidates "
+                         "(alone or in the cell detector); 3PT-D scores with its network: drop "
+                         "it or pass --detector templates")
     if not detector and refiner is None:
         raise ValueError("no model to load: --refiner none leaves this command nothing to run; "
                          "drop it (the default refiner) or pass --refiner contour|RUN")
@@ -203,7 +212,9 @@ def load_models(args, detector: bool = True):
     models = load(workdir, args.step, refiner=refiner,
                   refiner_step=getattr(args, "refiner_step", "best"), cache_dir=args.cache_dir,
                   num_templates=args.num_templates, detector=kind if detector else None,
-                  templates_score=args.templates_score if detector else None)
+                  templates_score=args.templates_score if detector else None,
+                  templates_verifier=bool(getattr(args, "templates_verifier", False)
+                                          and detector))
     return models if refining else dataclasses.replace(models, refiner=None)
 
 

@@ -533,6 +533,14 @@ def test_api_runs_the_templates_detector_on_one_view_only(scene, cache):
         infer.load(detector="yolo")
     with pytest.raises(ValueError, match="3PT-D"):
         infer.load("runs/x", detector="templates")
+    # The learned verifier is an option of the templates (and cell) detector, not of 3PT-D.
+    assert models.scene_detector(objects, depth_range=(330.0, 500.0)).verifier is None
+    checked = infer.load(detector="templates", refiner=None, cache_dir=cache,
+                         templates_verifier=True)
+    checked.shape_search = SMALL
+    assert checked.scene_detector(objects, depth_range=(330.0, 500.0)).verifier is not None
+    with pytest.raises(ValueError, match="templates_verifier checks"):
+        infer.load(detector="3pt", templates_verifier=True)
 
 
 def test_images_command_with_the_templates_detector(scene, cache, tmp_path, capsys,
@@ -562,6 +570,11 @@ def test_images_command_with_the_templates_detector(scene, cache, tmp_path, caps
               str(tmp_path / "out2"), *args])
     assert e.value.code == 2
     assert "drop one of them" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main(["images", "--detector", "3pt", "--templates-verifier", "--out",
+              str(tmp_path / "out3"), *args])
+    assert e.value.code == 2
+    assert "--templates-verifier checks" in capsys.readouterr().err
 
 
 def _perimeter_covariance(polygon):
