@@ -94,8 +94,8 @@ class Models:
       shape_search: the training-free detector's settings (``load(detector="templates")``,
         :class:`infer.shape_detect.ShapeSearchDetector`), None with 3PT-D; templates_score: its
         per-part score weights of a cell's calibration (``load(templates_score=FILE)``), None:
-        the shared ones; templates_verifier: whether the templates' score adds the shipped
-        learned verifier's correction (``load(templates_verifier=True)``).
+        the shared ones; templates_verifier: the templates detector's ``verifier`` argument,
+        ``"shipped"`` with ``load(templates_verifier=True)``, else None.
     """
 
     detector: Detector | None
@@ -109,7 +109,7 @@ class Models:
     cache_dir: pathlib.Path | None = None
     shape_search: ShapeSearchSettings | None = None
     templates_score: dict[int, tuple[float, ...]] | None = None
-    templates_verifier: bool = False
+    templates_verifier: str | None = None
     cell: tuple[Any, list[int]] | None = None
     # Per-object-set caches; not init fields, so a dataclasses.replace starts empty ones.
     _scene_detectors: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
@@ -163,21 +163,17 @@ class Models:
             if self.cell is not None:
                 self._scene_detectors[key] = CellDetector(
                     *self.cell, objects, settings=self.shape_search, cache_dir=cache,
-                    score_weights=self.templates_score, verifier=self.verifier_option(),
+                    score_weights=self.templates_score, verifier=self.templates_verifier,
                     **options)
             elif self.shape_search is not None:
                 self._scene_detectors[key] = ShapeSearchDetector(
                     objects, settings=self.shape_search, cache_dir=cache,
-                    score_weights=self.templates_score, verifier=self.verifier_option(),
+                    score_weights=self.templates_score, verifier=self.templates_verifier,
                     **options)
             else:
                 self._scene_detectors[key] = SceneDetector(self.detector, self.config, objects,
                                                            **options)
         return self._scene_detectors[key]
-
-    def verifier_option(self) -> str | None:
-        """The templates detector's ``verifier`` argument: ``"shipped"`` or None."""
-        return "shipped" if self.templates_verifier else None
 
     def pose_renderer(self, objects: Sequence[OnboardedObject]) -> PoseRenderer:
         """The mask renderer of these objects, built once (its meshes are prepared once)."""
@@ -247,7 +243,7 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
                          "pass detector='templates'")
     if detector in ("cell", "templates"):
         models.shape_search = ShapeSearchSettings()
-        models.templates_verifier = bool(templates_verifier)
+        models.templates_verifier = "shipped" if templates_verifier else None
         if templates_score is not None:
             models.templates_score = load_score_weights(templates_score)
     if detector == "cell":

@@ -36,47 +36,50 @@ def cell_parts(data: pathlib.Path, split_name: str):
     return dataset.split(split_name), depth, {o.obj_id: o for o in objects}
 
 
-def collect(data: pathlib.Path, per_image: bool, cache: pathlib.Path, name: str,
-            split_name: str = "val_pbr", max_images: int | None = None,
-            verifier: str | None = None):
-    """Features [P, F], rightness [P], parts (obj_id) [P] and the verifier's evidence [P]
-    (zeros without one; ``verifier``: the detector's argument) of every verified candidate of
-    every image (the first
-    ``max_images``) of the dataset's ``split_name``."""
+def searched_images(data: pathlib.Path, split_name: str, per_image: bool, cache: pathlib.Path,
+                    name: str, max_images: int | None = None, verifier: str | None = None):
+    """Each image of the dataset's ``split_name`` (the first ``max_images``) searched by the
+    templates detector of its cell's parts (``per_image``: of the parts it shows), one detector
+    per set of parts: ``(detector, image, K, candidates, parts, right)`` with the candidates'
+    parts (obj_id) [n] and whether each is right [n] (IoU >= 0.5 with a ground-truth box of its
+    part). Images without a candidate are skipped. ``verifier``: the detector's argument."""
     from infer.shape_detect import ShapeSearchDetector
     from threept_jax.pipeline.shape_search import right_candidates
 
     split, depth, by_id = cell_parts(data, split_name)
     detectors = {}
-
-    def detector(ids):
-        if ids not in detectors:
-            detectors[ids] = ShapeSearchDetector([by_id[i] for i in ids], depth_range=depth,
-                                                 cache_dir=cache, verifier=verifier)
-        return detectors[ids]
-
-    feats, right, parts, evidence = [], [], [], []
     keys = [(s, im) for s in split.scene_ids for im in split.scene(s).image_ids][:max_images]
     for s, im in tqdm(keys, desc=name, leave=False):
         scene = split.scene(s)
         gt_ids = np.array([g.obj_id for g in scene.gt[im]])
         gt_box = np.array([[b[0], b[1], b[0] + b[2], b[1] + b[3]]
                            for b in (i.bbox_obj for i in scene.gt_info[im])], np.float64)
-        det = detector(tuple(sorted(set(gt_ids.tolist())) if per_image else sorted(by_id)))
-        c = det.candidates(scene.image(im), scene.cameras[im].K)
+        ids = tuple(sorted(set(gt_ids.tolist())) if per_image else sorted(by_id))
+        if ids not in detectors:
+            detectors[ids] = ShapeSearchDetector([by_id[i] for i in ids], depth_range=depth,
+                                                 cache_dir=cache, verifier=verifier)
+        det = detectors[ids]
+        image, K = scene.image(im), scene.cameras[im].K
+        c = det.candidates(image, K)
         if c is None:
             continue
-        ids = np.array([o.obj_id for o in det.objects])[c.obj]
-        feats.append(c.features)
-        right.append(right_candidates(c.xyxy, ids, gt_box, gt_ids).any(1))
-        parts.append(ids)
-        evidence.append(c.evidence)
-    if not feats:
+        parts = np.array([o.obj_id for o in det.objects])[c.obj]
+        yield det, image, K, c, parts, right_candidates(c.xyxy, parts, gt_box, gt_ids).any(1)
+
+
+def collect(data: pathlib.Path, per_image: bool, cache: pathlib.Path, name: str,
+            split_name: str = "val_pbr", max_images: int | None = None,
+            verifier: str | None = None):
+    """Features [P, F], rightness [P], parts (obj_id) [P] and the verifier's evidence [P]
+    (zeros without one) of every verified candidate of the images :func:`searched_images`
+    searches."""
+    rows = [(c.features, right, parts, c.evidence) for _, _, _, c, parts, right in
+            searched_images(data, split_name, per_image, cache, name, max_images, verifier)]
+    if not rows:
         raise TooFewCandidates(f"{data}: no image gave a candidate (no proposal or no part "
                                f"outline): check its images and meshes, or delete the folder "
                                f"to make it again")
-    return (np.concatenate(feats), np.concatenate(right), np.concatenate(parts),
-            np.concatenate(evidence))
+    return tuple(np.concatenate(a) for a in zip(*rows))
 
 
 #: Images a cell's calibration reads by default: on the demo's cell its first 30 training

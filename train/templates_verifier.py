@@ -102,36 +102,21 @@ def collect(data: pathlib.Path, split_name: str, per_image: bool, cache: pathlib
     """Every verified candidate of the dataset's images (no verifier: the logistic score's
     candidates) with what the verifier reads, written to ``out`` (npz: ``features``,
     ``right``, ``parts``, ``crops``, ``renders``)."""
-    from tqdm import tqdm
-
-    from infer.shape_detect import ShapeSearchDetector, raster_meshes
+    from infer.shape_detect import raster_meshes
     from threept_jax.data.files import atomic_savez
-    from threept_jax.pipeline.shape_search import right_candidates, verifier_inputs
-    from train.cell_score import cell_parts
+    from threept_jax.pipeline.shape_search import verifier_inputs
+    from train.cell_score import searched_images
 
-    split, depth, by_id = cell_parts(data, split_name)
-    detectors, acc = {}, {k: [] for k in ("features", "right", "parts", "crops", "renders")}
-    keys = [(s, im) for s in split.scene_ids for im in split.scene(s).image_ids]
-    for s, im in tqdm(keys, desc=out.stem, leave=False):
-        scene = split.scene(s)
-        gt_ids = np.array([g.obj_id for g in scene.gt[im]])
-        gt_box = np.array([[b[0], b[1], b[0] + b[2], b[1] + b[3]]
-                           for b in (g.bbox_obj for g in scene.gt_info[im])], np.float64)
-        ids = tuple(sorted(set(gt_ids.tolist())) if per_image else sorted(by_id))
-        if ids not in detectors:
-            det = ShapeSearchDetector([by_id[i] for i in ids], depth_range=depth,
-                                      cache_dir=cache, verifier=None)
-            detectors[ids] = det, raster_meshes(det.objects)
-        det, rasters = detectors[ids]
-        image, K = scene.image(im), scene.cameras[im].K
-        c = det.candidates(image, K)
-        if c is None:
-            continue
-        crops, renders = verifier_inputs(image, K, c.poses, c.obj, c.xyxy, rasters)
-        oid = np.array([o.obj_id for o in det.objects])[c.obj]
+    rasters, acc = {}, {k: [] for k in ("features", "right", "parts", "crops", "renders")}
+    for det, image, K, c, parts, right in searched_images(data, split_name, per_image, cache,
+                                                          out.stem):
+        key = tuple(o.obj_id for o in det.objects)
+        if key not in rasters:
+            rasters[key] = raster_meshes(det.objects)
+        crops, renders = verifier_inputs(image, K, c.poses, c.obj, c.xyxy, rasters[key])
         acc["features"].append(c.features)
-        acc["right"].append(right_candidates(c.xyxy, oid, gt_box, gt_ids).any(1))
-        acc["parts"].append(oid)
+        acc["right"].append(right)
+        acc["parts"].append(parts)
         acc["crops"].append(crops)
         acc["renders"].append(renders)
     if not acc["right"]:
