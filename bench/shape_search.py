@@ -28,7 +28,7 @@ This is the detector alone; the BOP 6D AP after refinement comes from ``python -
 
     python bench/shape_search.py [--data DIR] [--images 8] [--per-image] [--no-depth-range]
         [--by-parts] [--ceiling] [--templates-score FILE] [--candidates 300] [--per-proposal 1]
-        [--contour-iterations 1] [--verifier] [--out F.json]
+        [--contour-iterations 1] [--[no-]verifier] [--out F.json]
 """
 
 from __future__ import annotations
@@ -174,9 +174,10 @@ def main(argv=None):
     p.add_argument("--templates-score", type=pathlib.Path, default=None, metavar="FILE",
                    help="the cell's own score calibration (python -m train.templates_score "
                         "--cell DATA --out FILE; never fitted on the images evaluated here)")
-    p.add_argument("--verifier", action="store_true",
-                   help="add the shipped learned verifier's correction to the score "
-                        "(models/templates-verifier; not the detector's default)")
+    p.add_argument("--verifier", action=argparse.BooleanOptionalAction,
+                   help="the shipped learned verifier's correction to the score "
+                        "(models/templates-verifier). Default: the detector's, on with the "
+                        "shared score and off with --templates-score")
     p.add_argument("--ceiling", action="store_true",
                    help="diagnostic: instances with a right verified candidate, and the box "
                         "AP50 a perfect score would give on the same candidates")
@@ -201,7 +202,7 @@ def main(argv=None):
     settings = dataclasses.replace(settings, **over)
 
     weights = None if args.templates_score is None else load_score_weights(args.templates_score)
-    verifier = "shipped" if args.verifier else None
+    verifier = {None: "auto", True: "shipped", False: None}[args.verifier]
     t = time.perf_counter()
     objects = refine_objects(meshes)
     detector = ShapeSearchDetector(objects, depth_range=depth, score_threshold=0.0,
@@ -225,7 +226,7 @@ def main(argv=None):
     ap50, ap = box_ap(args.data, args.split, dets)
     result = {"data": str(args.data), "images": len(keys), "parts": len(objects),
               "templates_score": None if weights is None else str(args.templates_score),
-              "verifier": verifier,
+              "verifier": detector.verifier is not None,
               "per_image": args.per_image,
               "depth_range": depth,
               "settings": {k: v for k, v in dataclasses.asdict(settings).items()

@@ -19,13 +19,14 @@ downloaded and nothing from outside the repository:
    before refinement and after it.
 2. **No training** (``--detector templates``): the same cell, the same test images, its parts
    found from their CAD models alone (``infer/shape_detect.py``: selective-search proposals,
-   contour templates fitted to each, the best poses verified by the contour refiner), then
+   contour templates fitted to each, the best poses verified by the contour refiner, scored
+   by the shared score and the shipped verifier, both fitted on cells of other parts), then
    refined by the contour refiner. The baseline every learned detector must beat.
 3. **No training, score calibrated on the cell** (``python -m train.templates_score --cell``):
    the templates detector again, its score a logistic model per part fitted on the adapted
    setting's first 30 training images (what a right candidate of each part looks like; no
-   network is trained), on the same test images. Settings 1-3 look at the same images with
-   the same parts, so the templates detector searches each image once
+   network is trained; it replaces the verifier), on the same test images. Settings 1-3 look
+   at the same images with the same parts, so the templates detector searches each image once
    (:func:`infer.shape_detect.shared_searches`) and each setting scores what it found its own
    way: the BOP ``time`` of settings 2 and 3 leaves the search out (``bench/shape_search.py``
    times it).

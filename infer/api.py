@@ -94,8 +94,9 @@ class Models:
       shape_search: the training-free detector's settings (``load(detector="templates")``,
         :class:`infer.shape_detect.ShapeSearchDetector`), None with 3PT-D; templates_score: its
         per-part score weights of a cell's calibration (``load(templates_score=FILE)``), None:
-        the shared ones; templates_verifier: the templates detector's ``verifier`` argument,
-        ``"shipped"`` with ``load(templates_verifier=True)``, else None.
+        the shared ones; templates_verifier: the templates detector's ``verifier`` argument
+        (``load(templates_verifier=)``: ``"auto"`` by default, ``"shipped"`` with True, None
+        with False).
     """
 
     detector: Detector | None
@@ -109,7 +110,7 @@ class Models:
     cache_dir: pathlib.Path | None = None
     shape_search: ShapeSearchSettings | None = None
     templates_score: dict[int, tuple[float, ...]] | None = None
-    templates_verifier: str | None = None
+    templates_verifier: str | None = "auto"
     cell: tuple[Any, list[int]] | None = None
     # Per-object-set caches; not init fields, so a dataclasses.replace starts empty ones.
     _scene_detectors: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
@@ -186,7 +187,7 @@ class Models:
 def load(workdir=None, step: int | str = "best", *, refiner=None,
          refiner_step: int | str = "best", cache_dir=DEFAULT_CACHE,
          num_templates: int = ONBOARD_TEMPLATES, detector: str | None = None,
-         templates_score=None, templates_verifier: bool = False) -> Models:
+         templates_score=None, templates_verifier: bool | None = None) -> Models:
     """The models inference runs: a detector and a refiner.
 
     ``detector``: ``"templates"``, the training-free detector
@@ -214,9 +215,10 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
     on scenes of the cell's own parts; docs/inference.md, "Which detector"), or None: the
     shared weights fitted on cells of other parts.
 
-    ``templates_verifier``: add the shipped learned verifier's correction to the templates'
-    score (``models/templates-verifier``, its card says what it does and costs; not the
-    default: docs/inference.md, "An optional learned verifier")."""
+    ``templates_verifier``: whether the shipped learned verifier corrects the templates'
+    score (``models/templates-verifier``, its card says what it does and costs): None (the
+    default) with the shared score and not with a cell's ``templates_score`` (fitted without
+    it), True always, False never (docs/inference.md, "The learned verifier")."""
     if detector is None:
         detector = default_detector(workdir)
     if detector not in DETECTORS:
@@ -243,7 +245,8 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
                          "pass detector='templates'")
     if detector in ("cell", "templates"):
         models.shape_search = ShapeSearchSettings()
-        models.templates_verifier = "shipped" if templates_verifier else None
+        models.templates_verifier = {None: "auto", True: "shipped", False: None}[
+            templates_verifier]
         if templates_score is not None:
             models.templates_score = load_score_weights(templates_score)
     if detector == "cell":

@@ -102,11 +102,13 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
                         "model per part, no network), with --detector templates or cell (its "
                         "templates' poses and detections); default: the shared score, fitted "
                         "on cells of other parts")
-    p.add_argument("--templates-verifier", action="store_true",
-                   help="add the shipped learned verifier's correction to the templates' score "
+    p.add_argument("--templates-verifier", action=argparse.BooleanOptionalAction,
+                   help="the shipped learned verifier's correction to the templates' score "
                         "(models/templates-verifier: the image around each candidate against "
-                        "its part rendered at its pose), with --detector templates or cell; "
-                        "about 0.35 s more an image; not the default (docs/inference.md)")
+                        "its part rendered at its pose; about 0.35 s an image), with --detector "
+                        "templates or cell. Default: on with the shared score, off with "
+                        "--templates-score (a cell's calibration, fitted without it) "
+                        "(docs/inference.md)")
     p.add_argument("--step", type=checkpoint_step, default="best",
                    help="checkpoint: best, latest or a step number")
     p.add_argument("--num-templates", type=int_at_least(1), default=ONBOARD_TEMPLATES,
@@ -213,8 +215,8 @@ def load_models(args, detector: bool = True):
                   refiner_step=getattr(args, "refiner_step", "best"), cache_dir=args.cache_dir,
                   num_templates=args.num_templates, detector=kind if detector else None,
                   templates_score=args.templates_score if detector else None,
-                  templates_verifier=bool(getattr(args, "templates_verifier", False)
-                                          and detector))
+                  templates_verifier=getattr(args, "templates_verifier", None)
+                  if detector else None)
     return models if refining else dataclasses.replace(models, refiner=None)
 
 

@@ -11,12 +11,13 @@ scores and its outline's shape and surroundings
 (:func:`~threept_jax.pipeline.shape_search.calibrated_score`, fitted by ``python -m
 train.templates_score`` on cells of parts no evaluation uses).
 
-``verifier="shipped"`` adds a learned verifier's correction to the score
-(``models/templates-verifier``, :class:`threept_jax.models.verifier.CandidateVerifier`: the
-image around each candidate beside its part rendered at its pose, trained by ``python -m
-train.templates_verifier`` on cells of other parts). It is not the default: on five held-out
-sets of 8 images it raises the mean box AP50 from 0.444 to 0.474 but lowers one of them, and
-costs 0.32-0.37 s an image (docs/benchmarks.md, "A learned verifier inside the outline").
+A learned verifier corrects the shared score by default (``verifier="auto"``: the shipped
+one, ``models/templates-verifier``, :class:`threept_jax.models.verifier.CandidateVerifier`:
+the image around each candidate beside its part rendered at its pose, trained by ``python -m
+train.templates_verifier`` on cells of other parts; ``verifier=None`` turns it off). On three
+held-out sets of 48 images it raises box AP50 by 0.04-0.08 and costs about 0.35 s an image
+(docs/benchmarks.md, "48 images a set"). A cell's own calibration (``score_weights``) was
+fitted without it and replaces it: "auto" adds no verifier there.
 
 A cell can calibrate the score on scenes of its own parts (``python -m train.templates_score
 --cell DATA``: a logistic model per part, no network): :func:`load_score_weights` reads the
@@ -48,7 +49,7 @@ from flax import nnx
 
 from infer.contour_refine import _cached_contours, hash_mesh
 from infer.detect import Detection, Detections
-from threept_jax.data.pretrained import VERIFIER_DIR, load_verifier, module_arrays
+from threept_jax.data.pretrained import VERIFIER_DIR, load_verifier
 from threept_jax.geometry.validate import validate_intrinsics
 from threept_jax.models.verifier import CandidateVerifier
 from threept_jax.pipeline.contour import stack_contours
@@ -196,14 +197,17 @@ class ShapeSearchDetector:
     size. ``score_threshold``: score a detection must exceed (:data:`SCORE_THRESHOLD`);
     ``max_detections`` per image. ``score_weights``: ``{obj_id: weights}`` of a cell's own
     calibration (:func:`load_score_weights`); parts it lacks (and without it, all) are scored
-    with the shared :data:`~threept_jax.pipeline.shape_search.SCORE_WEIGHTS`."""
+    with the shared :data:`~threept_jax.pipeline.shape_search.SCORE_WEIGHTS`. ``verifier``: a
+    :class:`~threept_jax.models.verifier.CandidateVerifier` whose correction is added to the
+    score's log-odds, ``"shipped"`` (``models/templates-verifier``), None (none), or ``"auto"``
+    (the default): the shipped one unless ``score_weights`` is given."""
 
     def __init__(self, objects: Sequence, *, depth_range: tuple[float, float] | None = None,
                  score_threshold: float = SCORE_THRESHOLD, max_detections: int = 100,
                  settings: ShapeSearchSettings | None = None,
                  cache_dir: str | os.PathLike | None = None,
                  score_weights: Mapping[int, Sequence[float]] | None = None,
-                 verifier: CandidateVerifier | str | None = None):
+                 verifier: CandidateVerifier | str | None = "auto"):
         if not objects:
             raise ValueError("no objects to detect: give at least one mesh")
         if depth_range is not None:
@@ -233,23 +237,21 @@ class ShapeSearchDetector:
         self.templates = jax.tree.map(jnp.asarray, templates)
         self.centers = np.stack([c["center"] for c in contours])
         self.diameters = np.array([2.0 * float(c["radius"]) for c in contours])
+        if verifier == "auto":
+            verifier = "shipped" if score_weights is None else None
         if isinstance(verifier, str):
             if verifier != "shipped":
-                raise ValueError(f"verifier must be a CandidateVerifier, 'shipped' or None, "
-                                 f"got {verifier!r}")
+                raise ValueError(f"verifier must be a CandidateVerifier, 'auto', 'shipped' or "
+                                 f"None, got {verifier!r}")
             verifier = shipped_verifier()
         self.verifier = verifier
-        # What the candidates depend on, with the image and K (not the score weights).
+        self.rasters = [] if verifier is None else raster_meshes(self.objects)
+        # What the search's candidates depend on, with the image and K (not the score weights
+        # nor the verifier, whose evidence is added after the search).
         search = hashlib.sha256(repr((self.depth_range, self.settings)).encode())
         for o in self.objects:
             search.update(f"|{o.obj_id}|{len(o.mesh.vertices)}|".encode())
             hash_mesh(search, o.mesh)
-        self.rasters = []
-        if verifier is not None:
-            for k, a in sorted(module_arrays(verifier).items()):
-                search.update(f"|{k}|".encode())
-                search.update(np.ascontiguousarray(a).tobytes())
-            self.rasters = raster_meshes(self.objects)
         self._search = search
 
     def _depths(self, o: int, K: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
@@ -263,9 +265,8 @@ class ShapeSearchDetector:
                 obj: np.ndarray, template: np.ndarray):
         """Stage 3 of m <= ``candidates`` poses [m, 4, 4] of parts ``obj`` [m] (rows of
         ``objects``) fitted with template scores ``template`` [m]: refined poses [m, 4, 4],
-        outline boxes xyxy [m, 4] (clipped to the image), :data:`FEATURES` [m, F] and the
-        verifier's evidence [m] (NumPy). Padded to ``candidates`` (one compiled verification
-        per image size)."""
+        outline boxes xyxy [m, 4] (clipped to the image) and :data:`FEATURES` [m, F] (NumPy).
+        Padded to ``candidates`` (one compiled verification per image size)."""
         s = self.settings
         m = len(poses)
         pad = np.concatenate([np.arange(m), np.zeros(s.candidates - m, np.int64)])
@@ -280,26 +281,37 @@ class ShapeSearchDetector:
         # Boxes of what the image shows: a part cut by the image's side is boxed to it.
         hw = image.shape[:2]
         xyxy = np.clip(xyxy, 0, np.array([hw[1], hw[0], hw[1], hw[0]], np.float32))
-        evidence = np.zeros(m, np.float32)
-        if self.verifier is not None and m:
-            crops, renders = verifier_inputs(image, K, refined, np.asarray(obj), xyxy,
-                                             self.rasters)
-            inputs = score_inputs(features).astype(np.float32)
-            # Padded to ``candidates``: one compiled verifier.
-            evidence = np.asarray(_evidence(self.verifier, crops[pad], renders[pad],
-                                            inputs[pad]))[:m]
-        return refined, xyxy, features, evidence
+        return refined, xyxy, features
+
+    def _evidence(self, image: np.ndarray, K: np.ndarray, c: Candidates) -> np.ndarray:
+        """The verifier's correction [m] to the log-odds of the searched candidates ``c`` of
+        an image: their crops and renders through the verifier, padded to ``candidates`` (one
+        compiled verifier)."""
+        m = len(c.obj)
+        pad = np.concatenate([np.arange(m), np.zeros(self.settings.candidates - m, np.int64)])
+        crops, renders = verifier_inputs(image, K, c.poses, c.obj, c.xyxy, self.rasters)
+        inputs = score_inputs(c.features).astype(np.float32)
+        return np.asarray(_evidence(self.verifier, crops[pad], renders[pad], inputs[pad]))[:m]
 
     def candidates(self, image: np.ndarray, K: np.ndarray) -> Candidates | None:
         """The verified candidates of one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3]
-        (pixels of this image), before scoring and NMS; None when there are none (no proposal,
-        no outline). Within :func:`shared_searches`, an image searched there by a detector of
-        the same search is not searched again (its candidates' arrays are read-only there)."""
+        (pixels of this image), before scoring and NMS, with the verifier's evidence when the
+        detector has one; None when there are none (no proposal, no outline). Within
+        :func:`shared_searches`, an image searched there by a detector of the same search is
+        not searched again (its candidates' arrays are read-only there)."""
         image = np.ascontiguousarray(image)
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise ValueError(f"image must be uint8 RGB [H, W, 3], got {image.dtype} "
                              f"{image.shape}")
         K = validate_intrinsics(K, "K", image_hw=image.shape[:2]).astype(np.float64)
+        found = self._searched(image, K)
+        if found is None or self.verifier is None:
+            return found
+        return found._replace(evidence=self._evidence(image, K, found))
+
+    def _searched(self, image: np.ndarray, K: np.ndarray) -> Candidates | None:
+        """:meth:`candidates` of a checked image and K without the verifier's evidence (zero):
+        searched, or read from :func:`shared_searches`."""
         shared = _SHARED
         if shared is None:
             return self._candidates(image, K)
@@ -353,9 +365,10 @@ class ShapeSearchDetector:
             return None
         template, obj, poses = (np.array(a) for a in zip(*found))
         chosen = select_candidates(template, obj, s.candidates)
-        refined, xyxy, features, evidence = self._verify(image, response, K, poses[chosen],
-                                                         obj[chosen], template[chosen])
-        return Candidates(refined, obj[chosen].astype(np.int32), xyxy, features, evidence)
+        refined, xyxy, features = self._verify(image, response, K, poses[chosen], obj[chosen],
+                                               template[chosen])
+        return Candidates(refined, obj[chosen].astype(np.int32), xyxy, features,
+                          np.zeros(len(chosen), np.float32))
 
     def detect(self, image: np.ndarray, K: np.ndarray) -> Detections:
         """Detections in one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3] (pixels of
@@ -443,9 +456,12 @@ class ShapeSearchDetector:
                 taken.append(c)
                 per_box[c[1]] += 1
         template, cand_box, cand_pose = (np.array(a) for a in zip(*taken))
-        refined, _, features, evidence = self._verify(image, response, K, cand_pose,
-                                                      obj[cand_box], template)
-        calibrated = np.asarray(calibrated_score(features, self.score_weights[obj[cand_box]],
+        refined, xyxy, features = self._verify(image, response, K, cand_pose, obj[cand_box],
+                                               template)
+        c = Candidates(refined, obj[cand_box].astype(np.int32), xyxy, features,
+                       np.zeros(len(taken), np.float32))
+        evidence = c.evidence if self.verifier is None else self._evidence(image, K, c)
+        calibrated = np.asarray(calibrated_score(c.features, self.score_weights[c.obj],
                                                  evidence))
         for i in range(len(taken)):
             b = cand_box[i]

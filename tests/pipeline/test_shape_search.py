@@ -323,9 +323,10 @@ def scene(cache):
                   (230.0, 115.0), 420.0)
     img = _render([(box, T_box), (cyl, T_cyl)], _background(1))
     objects = [RefineObject(1, box, np.eye(4)[None]), RefineObject(2, cyl, np.eye(4)[None])]
+    # The search alone: the verifier (the default) has its own test.
     detector = ShapeSearchDetector(objects, depth_range=(330.0, 500.0), score_threshold=0.1,
                                    max_detections=10, settings=SMALL,
-                                   cache_dir=cache / "contours")
+                                   cache_dir=cache / "contours", verifier=None)
     return img, {1: T_box, 2: T_cyl}, objects, detector
 
 
@@ -533,12 +534,13 @@ def test_api_runs_the_templates_detector_on_one_view_only(scene, cache):
         infer.load(detector="yolo")
     with pytest.raises(ValueError, match="3PT-D"):
         infer.load("runs/x", detector="templates")
-    # The learned verifier is an option of the templates (and cell) detector, not of 3PT-D.
-    assert models.scene_detector(objects, depth_range=(330.0, 500.0)).verifier is None
-    checked = infer.load(detector="templates", refiner=None, cache_dir=cache,
-                         templates_verifier=True)
-    checked.shape_search = SMALL
-    assert checked.scene_detector(objects, depth_range=(330.0, 500.0)).verifier is not None
+    # The learned verifier checks the templates (and cell) detector's candidates by default
+    # (it ran above), not 3PT-D's.
+    assert models.scene_detector(objects, depth_range=(330.0, 500.0)).verifier is not None
+    plain = infer.load(detector="templates", refiner=None, cache_dir=cache,
+                       templates_verifier=False)
+    plain.shape_search = SMALL
+    assert plain.scene_detector(objects, depth_range=(330.0, 500.0)).verifier is None
     with pytest.raises(ValueError, match="templates_verifier checks"):
         infer.load(detector="3pt", templates_verifier=True)
 
@@ -575,6 +577,13 @@ def test_images_command_with_the_templates_detector(scene, cache, tmp_path, caps
               str(tmp_path / "out3"), *args])
     assert e.value.code == 2
     assert "--templates-verifier checks" in capsys.readouterr().err
+    # On by default (None: the detector decides), off with --no-templates-verifier.
+    from infer.cli import build_parser
+
+    for flag, want in (([], None), (["--templates-verifier"], True),
+                       (["--no-templates-verifier"], False)):
+        parsed = build_parser().parse_args(["images", "--out", "o", *args, *flag])
+        assert parsed.templates_verifier is want
 
 
 def _perimeter_covariance(polygon):
@@ -786,7 +795,7 @@ def test_an_image_is_searched_once_whatever_the_score(scene, cache, monkeypatch)
                                 max_detections=10, settings=SMALL, cache_dir=cache / "contours",
                                 score_weights={1: constant})
     farther = ShapeSearchDetector(objects, depth_range=(330.0, 600.0), settings=SMALL,
-                                  cache_dir=cache / "contours")
+                                  cache_dir=cache / "contours", verifier=None)
     changed = img.copy()
     changed[0, 0] ^= 1
     with shared_searches():
@@ -801,7 +810,7 @@ def test_an_image_is_searched_once_whatever_the_score(scene, cache, monkeypatch)
         detector.candidates(changed, K)
         assert len(fits) == 8
         box_only = ShapeSearchDetector(objects[:1], depth_range=(330.0, 500.0), settings=SMALL,
-                                       cache_dir=cache / "contours")
+                                       cache_dir=cache / "contours", verifier=None)
         box_only.candidates(img, K)  # other parts
         assert len(fits) == 9
         detector.candidates(img, K * [[1.01], [1.01], [1.0]])  # other intrinsics
@@ -884,10 +893,10 @@ def test_fitting_with_evidence_moves_only_the_bias():
 
 
 def test_the_shipped_verifier_adds_its_evidence_to_the_score(scene, cache):
-    """Without a verifier (the default) the evidence is zero; with the shipped one each
-    detection's score is the logistic model of its candidate's features plus the verifier's
-    evidence on its crop and render (by hand), the same candidates otherwise, and another search
-    key (its evidence is part of the candidates)."""
+    """Without a verifier the evidence is zero; with the shipped one (the default with the
+    shared score, none with a cell's calibration) each detection's score is the logistic model
+    of its candidate's features plus the verifier's evidence on its crop and render (by hand),
+    the same candidates otherwise, from the same search (the evidence is added after it)."""
     from infer.shape_detect import shared_searches
 
     img, _, objects, detector = scene
@@ -896,8 +905,12 @@ def test_the_shipped_verifier_adds_its_evidence_to_the_score(scene, cache):
     np.testing.assert_array_equal(plain.evidence, 0.0)
     checked = ShapeSearchDetector(objects, depth_range=(330.0, 500.0), score_threshold=0.1,
                                   max_detections=10, settings=SMALL,
-                                  cache_dir=cache / "contours", verifier="shipped")
-    assert checked._search.digest() != detector._search.digest()
+                                  cache_dir=cache / "contours")
+    assert checked.verifier is not None
+    calibrated = ShapeSearchDetector(objects, settings=SMALL, cache_dir=cache / "contours",
+                                     score_weights={1: S.SCORE_WEIGHTS})
+    assert calibrated.verifier is None
+    assert checked._search.digest() == detector._search.digest()
     c = checked.candidates(img, K)
     np.testing.assert_array_equal(c.poses, plain.poses)
     np.testing.assert_array_equal(c.features, plain.features)
@@ -911,7 +924,10 @@ def test_the_shipped_verifier_adds_its_evidence_to_the_score(scene, cache):
     for d in checked.detect(img, K):
         assert np.min(np.abs(want - d.score)) < 1e-5
     with shared_searches():
-        assert checked.candidates(img, K) is not detector.candidates(img, K)
+        shared, alone = checked.candidates(img, K), detector.candidates(img, K)
+        assert shared.poses is alone.poses  # one search
+        np.testing.assert_allclose(shared.evidence, evidence, atol=1e-5)
+        np.testing.assert_array_equal(alone.evidence, 0.0)
     with pytest.raises(ValueError, match="verifier must be"):
         ShapeSearchDetector(objects, settings=SMALL, cache_dir=cache / "contours",
                             verifier="mine")
