@@ -190,8 +190,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
              *(["    the trained refiner is not used (it does not make held-out poses better): the "
                 "contour refiner refines instead"]
                if adapted.get("refiner_trained") not in (None, adapted["refiner"]) else []),
-             *summary("no training (templates detector + contour refiner, same images)",
-                      templates["test"]),
+             *summary("no training (templates detector and its verifier + contour refiner, "
+                      "same images)", templates["test"]),
              *summary("no training, score calibrated on the cell (a score per part fitted on "
                       "30 training images, same images)", tuned["test"]),
              *summary("zero-shot (the shipped models, 5 parts never seen)", unseen["test"])]
