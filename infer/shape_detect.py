@@ -237,7 +237,7 @@ class ShapeSearchDetector:
         self.templates = jax.tree.map(jnp.asarray, templates)
         self.centers = np.stack([c["center"] for c in contours])
         self.diameters = np.array([2.0 * float(c["radius"]) for c in contours])
-        if verifier == "auto":
+        if isinstance(verifier, str) and verifier == "auto":
             verifier = "shipped" if score_weights is None else None
         if isinstance(verifier, str):
             if verifier != "shipped":
