@@ -176,8 +176,7 @@ def main(argv=None):
                         "--cell DATA --out FILE; never fitted on the images evaluated here)")
     p.add_argument("--verifier", action=argparse.BooleanOptionalAction,
                    help="the shipped learned verifier's correction to the score "
-                        "(models/templates-verifier). Default: the detector's, on with the "
-                        "shared score and off with --templates-score")
+                        "(models/templates-verifier). Default: on, as in the detector")
     p.add_argument("--ceiling", action="store_true",
                    help="diagnostic: instances with a right verified candidate, and the box "
                         "AP50 a perfect score would give on the same candidates")
@@ -202,7 +201,7 @@ def main(argv=None):
     settings = dataclasses.replace(settings, **over)
 
     weights = None if args.templates_score is None else load_score_weights(args.templates_score)
-    verifier = {None: "auto", True: "shipped", False: None}[args.verifier]
+    verifier = None if args.verifier is False else "shipped"
     t = time.perf_counter()
     objects = refine_objects(meshes)
     detector = ShapeSearchDetector(objects, depth_range=depth, score_threshold=0.0,

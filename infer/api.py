@@ -95,8 +95,7 @@ class Models:
         :class:`infer.shape_detect.ShapeSearchDetector`), None with 3PT-D; templates_score: its
         per-part score weights of a cell's calibration (``load(templates_score=FILE)``), None:
         the shared ones; templates_verifier: the templates detector's ``verifier`` argument
-        (``load(templates_verifier=)``: ``"auto"`` by default, ``"shipped"`` with True, None
-        with False).
+        (``"shipped"``, None with ``load(templates_verifier=False)``).
     """
 
     detector: Detector | None
@@ -110,7 +109,7 @@ class Models:
     cache_dir: pathlib.Path | None = None
     shape_search: ShapeSearchSettings | None = None
     templates_score: dict[int, tuple[float, ...]] | None = None
-    templates_verifier: str | None = "auto"
+    templates_verifier: str | None = "shipped"
     cell: tuple[Any, list[int]] | None = None
     # Per-object-set caches; not init fields, so a dataclasses.replace starts empty ones.
     _scene_detectors: dict = dataclasses.field(default_factory=dict, repr=False, init=False)
@@ -217,8 +216,8 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
 
     ``templates_verifier``: whether the shipped learned verifier corrects the templates'
     score (``models/templates-verifier``, its card says what it does and costs): None (the
-    default) with the shared score and not with a cell's ``templates_score`` (fitted without
-    it), True always, False never (docs/inference.md, "The learned verifier")."""
+    default) or True: yes, with the shared score or a cell's ``templates_score``; False: no
+    (docs/inference.md, "The learned verifier"). True with 3PT-D is refused."""
     if detector is None:
         detector = default_detector(workdir)
     if detector not in DETECTORS:
@@ -245,8 +244,7 @@ def load(workdir=None, step: int | str = "best", *, refiner=None,
                          "pass detector='templates'")
     if detector in ("cell", "templates"):
         models.shape_search = ShapeSearchSettings()
-        models.templates_verifier = {None: "auto", True: "shipped", False: None}[
-            templates_verifier]
+        models.templates_verifier = None if templates_verifier is False else "shipped"
         if templates_score is not None:
             models.templates_score = load_score_weights(templates_score)
     if detector == "cell":

@@ -78,7 +78,7 @@ class CellDetector:
     alone (1.6 s an image on 2 cores, the merged path 2.9 s). ``max_detections``: per image,
     after the merge. ``score_weights``: a cell's calibration of the templates' score
     (:func:`infer.shape_detect.load_score_weights`), for the poses' scores and the templates'
-    detections; ``verifier``: the templates detector's (``"auto"``, ``"shipped"`` or None:
+    detections; ``verifier``: the templates detector's (``"shipped"`` or None:
     :class:`infer.shape_detect.ShapeSearchDetector`)."""
 
     def __init__(self, network: DenseDetector, class_ids: Sequence[int], objects: Sequence, *,
@@ -88,7 +88,7 @@ class CellDetector:
                  max_detections: int = 100, settings: ShapeSearchSettings | None = None,
                  cache_dir: str | os.PathLike | None = None,
                  score_weights: Mapping[int, Sequence[float]] | None = None,
-                 verifier: str | None = "auto"):
+                 verifier: str | None = "shipped"):
         if not objects:
             raise ValueError("no objects to detect: give at least one mesh")
         class_ids = [int(c) for c in class_ids]

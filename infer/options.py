@@ -106,8 +106,7 @@ def common_options(p: argparse.ArgumentParser, workdir_when: str | None = None) 
                    help="the shipped learned verifier's correction to the templates' score "
                         "(models/templates-verifier: the image around each candidate against "
                         "its part rendered at its pose; about 0.35 s an image), with --detector "
-                        "templates or cell. Default: on with the shared score, off with "
-                        "--templates-score (a cell's calibration, fitted without it) "
+                        "templates or cell, with or without --templates-score. Default: on "
                         "(docs/inference.md)")
     p.add_argument("--step", type=checkpoint_step, default="best",
                    help="checkpoint: best, latest or a step number")

@@ -11,13 +11,13 @@ scores and its outline's shape and surroundings
 (:func:`~threept_jax.pipeline.shape_search.calibrated_score`, fitted by ``python -m
 train.templates_score`` on cells of parts no evaluation uses).
 
-A learned verifier corrects the shared score by default (``verifier="auto"``: the shipped
-one, ``models/templates-verifier``, :class:`threept_jax.models.verifier.CandidateVerifier`:
-the image around each candidate beside its part rendered at its pose, trained by ``python -m
+A learned verifier corrects the score by default (``verifier="shipped"``,
+``models/templates-verifier``, :class:`threept_jax.models.verifier.CandidateVerifier`: the
+image around each candidate beside its part rendered at its pose, trained by ``python -m
 train.templates_verifier`` on cells of other parts; ``verifier=None`` turns it off). On three
-held-out sets of 48 images it raises box AP50 by 0.04-0.08 and costs about 0.35 s an image
-(docs/benchmarks.md, "48 images a set"). A cell's own calibration (``score_weights``) was
-fitted without it and replaces it: "auto" adds no verifier there.
+held-out sets of 48 images it raises box AP50 by 0.04-0.08 with the shared score, and by
+0.03 with a cell's own calibration, and costs about 0.35 s an image (docs/benchmarks.md, "48
+images a set").
 
 A cell can calibrate the score on scenes of its own parts (``python -m train.templates_score
 --cell DATA``: a logistic model per part, no network): :func:`load_score_weights` reads the
@@ -199,15 +199,14 @@ class ShapeSearchDetector:
     calibration (:func:`load_score_weights`); parts it lacks (and without it, all) are scored
     with the shared :data:`~threept_jax.pipeline.shape_search.SCORE_WEIGHTS`. ``verifier``: a
     :class:`~threept_jax.models.verifier.CandidateVerifier` whose correction is added to the
-    score's log-odds, ``"shipped"`` (``models/templates-verifier``), None (none), or ``"auto"``
-    (the default): the shipped one unless ``score_weights`` is given."""
+    score's log-odds, ``"shipped"`` (the default, ``models/templates-verifier``) or None."""
 
     def __init__(self, objects: Sequence, *, depth_range: tuple[float, float] | None = None,
                  score_threshold: float = SCORE_THRESHOLD, max_detections: int = 100,
                  settings: ShapeSearchSettings | None = None,
                  cache_dir: str | os.PathLike | None = None,
                  score_weights: Mapping[int, Sequence[float]] | None = None,
-                 verifier: CandidateVerifier | str | None = "auto"):
+                 verifier: CandidateVerifier | str | None = "shipped"):
         if not objects:
             raise ValueError("no objects to detect: give at least one mesh")
         if depth_range is not None:
@@ -237,12 +236,10 @@ class ShapeSearchDetector:
         self.templates = jax.tree.map(jnp.asarray, templates)
         self.centers = np.stack([c["center"] for c in contours])
         self.diameters = np.array([2.0 * float(c["radius"]) for c in contours])
-        if isinstance(verifier, str) and verifier == "auto":
-            verifier = "shipped" if score_weights is None else None
         if isinstance(verifier, str):
             if verifier != "shipped":
-                raise ValueError(f"verifier must be a CandidateVerifier, 'auto', 'shipped' or "
-                                 f"None, got {verifier!r}")
+                raise ValueError(f"verifier must be a CandidateVerifier, 'shipped' or None, "
+                                 f"got {verifier!r}")
             verifier = shipped_verifier()
         self.verifier = verifier
         self.rasters = [] if verifier is None else raster_meshes(self.objects)

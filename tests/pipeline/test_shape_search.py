@@ -893,10 +893,10 @@ def test_fitting_with_evidence_moves_only_the_bias():
 
 
 def test_the_shipped_verifier_adds_its_evidence_to_the_score(scene, cache):
-    """Without a verifier the evidence is zero; with the shipped one (the default with the
-    shared score, none with a cell's calibration) each detection's score is the logistic model
-    of its candidate's features plus the verifier's evidence on its crop and render (by hand),
-    the same candidates otherwise, from the same search (the evidence is added after it)."""
+    """Without a verifier the evidence is zero; with the shipped one (the default, with the
+    shared score or a cell's calibration) each detection's score is the logistic model of its
+    candidate's features plus the verifier's evidence on its crop and render (by hand), the
+    same candidates otherwise, from the same search (the evidence is added after it)."""
     from infer.shape_detect import shared_searches
 
     img, _, objects, detector = scene
@@ -909,7 +909,7 @@ def test_the_shipped_verifier_adds_its_evidence_to_the_score(scene, cache):
     assert checked.verifier is not None
     calibrated = ShapeSearchDetector(objects, settings=SMALL, cache_dir=cache / "contours",
                                      score_weights={1: S.SCORE_WEIGHTS})
-    assert calibrated.verifier is None
+    assert calibrated.verifier is not None
     assert checked._search.digest() == detector._search.digest()
     c = checked.candidates(img, K)
     np.testing.assert_array_equal(c.poses, plain.poses)
