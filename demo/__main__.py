@@ -25,7 +25,7 @@ downloaded and nothing from outside the repository:
 3. **No training, score calibrated on the cell** (``python -m train.templates_score --cell``):
    the templates detector again, its score a logistic model per part fitted on the adapted
    setting's first 30 training images (what a right candidate of each part looks like; no
-   network is trained; it replaces the verifier), on the same test images. Settings 1-3 look
+   network is trained; the verifier corrects it), on the same test images. Settings 1-3 look
    at the same images with the same parts, so the templates detector searches each image once
    (:func:`infer.shape_detect.shared_searches`) and each setting scores what it found its own
    way: the BOP ``time`` of settings 2 and 3 leaves the search out (``bench/shape_search.py``
@@ -193,7 +193,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
              *summary("no training (templates detector and its verifier + contour refiner, "
                       "same images)", templates["test"]),
              *summary("no training, score calibrated on the cell (a score per part fitted on "
-                      "30 training images, same images)", tuned["test"]),
+                      "30 training images, and the verifier; same images)", tuned["test"]),
              *summary("zero-shot (the shipped models, 5 parts never seen)", unseen["test"])]
     print(f"\ndone in {report['minutes']:.1f} min. Full images, all parts queried, new scenes:\n"
           + "\n".join(f"  {line}" for line in lines)
