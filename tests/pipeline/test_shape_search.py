@@ -727,8 +727,9 @@ def test_a_cells_score_calibration_scores_its_parts(scene, cache, tmp_path):
     path = tmp_path / "cell_score.json"
     path.write_text(json.dumps({"features": [*S.FEATURES, "bias"],
                                 "parts": {"1": constant, "7": constant}}))
+    # The calibration's own scores (the verifier, on by default, has its own test).
     models = infer.load(detector="templates", refiner=None, cache_dir=cache,
-                        templates_score=path)
+                        templates_score=path, templates_verifier=False)
     assert models.templates_score == {1: tuple(constant), 7: tuple(constant)}
     models.shape_search = SMALL
     detector = models.scene_detector(objects, depth_range=(330.0, 500.0), score_threshold=0.0,
@@ -793,7 +794,7 @@ def test_an_image_is_searched_once_whatever_the_score(scene, cache, monkeypatch)
     constant = [0.0] * len(S.FEATURES) + [float(np.log(0.77 / 0.23))]
     other = ShapeSearchDetector(objects, depth_range=(330.0, 500.0), score_threshold=0.1,
                                 max_detections=10, settings=SMALL, cache_dir=cache / "contours",
-                                score_weights={1: constant})
+                                score_weights={1: constant}, verifier=None)
     farther = ShapeSearchDetector(objects, depth_range=(330.0, 600.0), settings=SMALL,
                                   cache_dir=cache / "contours", verifier=None)
     changed = img.copy()
