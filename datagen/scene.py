@@ -559,6 +559,68 @@ def _light_color(rng: np.random.Generator) -> np.ndarray:
     return c / c.mean()
 
 
+def lamp_corners(pos: np.ndarray, centre: np.ndarray, size: Sequence[float]) -> np.ndarray:
+    """World corners [4, 3] (mm) of a rectangular lamp of ``size`` (w, h) mm at ``pos`` facing
+    ``centre`` (the rectangle :meth:`MitsubaScene.add_area_light` draws there)."""
+    T = np.linalg.inv(cams.look_at_camera(pos, centre))
+    xy = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * np.asarray(size, np.float64) / 2
+    return xy @ T[:3, :2].T + T[:3, 3]
+
+
+def _clip_depth(poly: np.ndarray, z: float, keep_nearer: bool) -> np.ndarray:
+    """The convex polygon ``poly`` [n, 3] (camera frame) clipped to depth >= ``z`` (or <= ``z``
+    with ``keep_nearer``): Sutherland-Hodgman against one plane."""
+    out = []
+    for a, b in zip(poly, np.roll(poly, -1, axis=0)):
+        a_in, b_in = (a[2] <= z, b[2] <= z) if keep_nearer else (a[2] >= z, b[2] >= z)
+        if a_in:
+            out.append(a)
+        if a_in != b_in:
+            out.append(a + (z - a[2]) / (b[2] - a[2]) * (b - a))
+    return np.array(out).reshape(-1, 3)
+
+
+def hides_view(corners: np.ndarray, K: np.ndarray, T_cam_world: np.ndarray,
+               hw: tuple[int, int], depth: float, near: float = 1.0) -> bool:
+    """Whether the planar convex polygon ``corners`` [n, 3] (world, mm) covers any of the image
+    of the camera (K, T_cam_world, ``hw``) between ``near`` and ``depth`` mm in front of it
+    (what it would hide there): the polygon clipped to that slab, projected, tested against the
+    image rectangle for a separating axis."""
+    c = corners @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    c = _clip_depth(_clip_depth(c, near, keep_nearer=False), depth, keep_nearer=True)
+    if len(c) < 3:
+        return False
+    uv = (c @ K.T)[:, :2] / c[:, 2:]
+    h, w = hw
+    image = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
+    for shape in (uv, image):
+        edges = np.roll(shape, -1, axis=0) - shape
+        for axis in np.stack([-edges[:, 1], edges[:, 0]], -1):
+            p, q = uv @ axis, image @ axis
+            if p.max() < q.min() or q.max() < p.min():
+                return False
+    return True
+
+
+def lamp_out_of_view(pos: np.ndarray, centre: np.ndarray, size: Sequence[float],
+                     Ks: Sequence[np.ndarray], T_cam_worlds: Sequence[np.ndarray],
+                     hw: tuple[int, int], step: float = 1.25, tries: int = 12) -> float | None:
+    """How far (a factor of its distance from ``centre``, 1 where it stays) a rectangular lamp
+    of ``size`` mm drawn at ``pos`` (facing ``centre``) must move away along its ray so that it
+    hides no camera's view of the scene (:func:`hides_view` up to the centre's depth):
+    factors of ``step``, None if it never clears. A lamp drawn between a cell's camera and the
+    tray hid the whole view behind its unlit back (3 of 48 held-out cell images were black).
+    No random draw: the scenes whose lamps hide nothing stay byte-identical."""
+    pos = np.asarray(pos, np.float64)
+    cameras = [(np.asarray(K, np.float64), np.asarray(T, np.float64),
+                float((T[:3, :3] @ centre + T[:3, 3])[2])) for K, T in zip(Ks, T_cam_worlds)]
+    for i in range(tries):
+        corners = lamp_corners(centre + step**i * (pos - centre), centre, size)
+        if not any(hides_view(corners, K, T, hw, depth) for K, T, depth in cameras):
+            return step**i
+    return None
+
+
 def _bucket(n: int) -> int:
     """Smallest size >= n in {8, 12, 16, 24, 32, 48, ...} (few distinct kernel sizes)."""
     s = 8
@@ -765,6 +827,7 @@ def generate_scene(
         # A cell is lit mostly by its own lamps above the tray; the room adds a little.
         scene.set_environment(sky, float(rng.uniform(*((0.1, 0.5) if cfg.cell else (0.3, 1.5)))),
                               T_env)
+        lamps = []  # (position, distance, irradiance, colour, area size or None for a point)
         for _ in range(int(rng.integers(cfg.lights[0], cfg.lights[1] + 1))):
             if cfg.cell is None:
                 el = math.radians(rng.uniform(20.0, 85.0))
@@ -778,14 +841,8 @@ def generate_scene(
             )
             irradiance = rng.uniform(0.3, 3.0)
             color = _light_color(rng)
-            if rng.random() < 0.5:
-                scene.add_point_light(pos, irradiance * dist**2 * color)
-            else:
-                size = radius * rng.uniform(0.3, 1.5, 2)
-                # A camera at the light looking at the centre: its +z is the emission axis.
-                T_light = np.linalg.inv(cams.look_at_camera(pos, centre))
-                scene.add_area_light(T_light, (float(size[0]), float(size[1])),
-                                     irradiance * dist**2 / (size[0] * size[1]) * color)
+            size = None if rng.random() < 0.5 else radius * rng.uniform(0.3, 1.5, 2)
+            lamps.append((pos, dist, irradiance, color, size))
         if cfg.cell is not None:
             K, T_cw = C.capture(rng, cfg.cell)
             Ks, Ts = K[None], T_cw[None]
@@ -807,6 +864,19 @@ def generate_scene(
                                   distance_scale=(1.0, 1.25), target_jitter=0.15)[None]
         else:
             Ks, Ts = cams.ring_rig(rng, cfg.views, W, H, centre, radius)
+        for pos, dist, irradiance, color, size in lamps:
+            if size is None:  # a point: nothing a camera could see
+                scene.add_point_light(pos, irradiance * dist**2 * color)
+                continue
+            away = lamp_out_of_view(pos, centre, size, Ks, Ts, (H, W))
+            if away is None:
+                continue
+            if away != 1.0:
+                pos, dist = centre + away * (pos - centre), away * dist
+            # A camera at the lamp looking at the centre: its +z is the emission axis.
+            T_light = np.linalg.inv(cams.look_at_camera(pos, centre))
+            scene.add_area_light(T_light, (float(size[0]), float(size[1])),
+                                 irradiance * dist**2 / (size[0] * size[1]) * color)
         seeds = rng.integers(0, 2**31 - 1, len(Ks))
         keys = rng.uniform(0.12, 0.3, len(Ks))
         timings.compose += time.perf_counter() - t1

@@ -1,10 +1,10 @@
 """Robot-cell scenes (``datagen --layout cell``): the cell's camera and tray from its hand-derived
 definition, every part of generated scenes inside the recorded depth range, one cell per dataset
-(both splits), carried into the records, and the errors.
+(both splits), carried into the records, no lamp hiding the view, and the errors.
 
 References: the pinhole relation size = f d / z derived by hand; ground-truth poses read back
 from the written BOP files with ``threept_jax.data.bop``; ``cv2.projectPoints`` for where the
-tray centre lands.
+tray centre lands; a float64 ray cast through every pixel for what a lamp hides.
 """
 
 import json
@@ -70,6 +70,54 @@ def test_captures_look_down_at_the_tray():
         uv, _ = cv2.projectPoints(np.zeros((1, 3)), cv2.Rodrigues(R)[0], t, K, None)
         u, v = uv[0, 0]
         assert abs(u - 160) < 0.15 * 320 and abs(v - 120) < 0.15 * 240
+
+
+def _rays_hit_lamp(corners, K, T_cam_world, hw, depth, near=1.0, step=2):
+    """Brute force: whether a camera ray through any pixel (every ``step`` px, borders
+    included) meets the rectangle ``corners`` [4, 3] (world) between ``near`` and ``depth``."""
+    c = corners @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    ex, ey = c[1] - c[0], c[3] - c[0]
+    n = np.cross(ex, ey)
+    h, w = hw
+    u, v = np.meshgrid(np.r_[np.arange(0, w, step), w], np.r_[np.arange(0, h, step), h])
+    d = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], -1) @ np.linalg.inv(K).T  # z = 1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (c[0] @ n) / (d @ n)
+    p = d * t[:, None] - c[0]
+    a, b = p @ ex / (ex @ ex), p @ ey / (ey @ ey)
+    hit = (t >= near) & (t <= depth) & (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
+    return bool(hit.any())
+
+
+def test_lamps_never_hide_the_view():
+    """A rectangular lamp hides a camera's view exactly where rays through its pixels meet it
+    before the scene (a float64 ray cast), and the generator moves such a lamp away until none
+    does: one drawn between a cell's camera and the tray made its image black."""
+    rng = np.random.default_rng(3)
+    cell = C.design_cell(rng, [50.0, 70.0, 120.0], (160, 120))
+    hw, centre = (120, 160), np.zeros(3)
+    seen = 0
+    for _ in range(300):
+        K, T = C.capture(rng, cell)
+        depth = float((T[:3, :3] @ centre + T[:3, 3])[2])
+        el, az = math.radians(rng.uniform(40, 90)), rng.uniform(0, 2 * math.pi)
+        dist = cell.working_distance * rng.uniform(0.5, 1.6)
+        pos = dist * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az),
+                               math.sin(el)])
+        size = rng.uniform(20.0, 300.0, 2)
+        corners = S.lamp_corners(pos, centre, size)
+        # The rectangle the renderer draws: centred on pos, facing the centre.
+        np.testing.assert_allclose(corners.mean(0), pos, atol=1e-9)
+        normal = np.cross(corners[1] - corners[0], corners[3] - corners[0])
+        assert normal @ (centre - pos) > 0
+        hidden = S.hides_view(corners, K, T, hw, depth)
+        assert hidden == _rays_hit_lamp(corners, K, T, hw, depth)
+        seen += hidden
+        away = S.lamp_out_of_view(pos, centre, size, [K], [T], hw)
+        assert away is not None and (away == 1.0) == (not hidden)
+        moved = S.lamp_corners(centre + away * (pos - centre), centre, size)
+        assert not _rays_hit_lamp(moved, K, T, hw, depth)
+    assert 10 < seen < 290  # both kinds of lamps were drawn
 
 
 def test_scenes_stay_in_the_recorded_depth_range(dataset):
