@@ -13,7 +13,8 @@ are in the sibling modules). :func:`generate_scene` builds a scene from a
    (``datagen.layouts``). Distractors take part in the physics.
 3. **Appearance** (``datagen.materials``): a random material per instance (or shared by the
    instances of one mesh), a textured ground, textured bin walls, sometimes far backdrop walls,
-   a procedural HDR sky and 1-3 point or area lights (re-drawn for every capture).
+   a procedural HDR sky and 1-3 point or area lights (re-drawn for every capture; an area
+   light that would hide a camera's view is moved away along its ray, :func:`lamp_out_of_view`).
 4. **Cameras**: realistic intrinsics (fx != fy); single random views (30 % of them
    close-ups that truncate objects at the image border) or rigs of V calibrated cameras on a
    ring above the scene; ``T_cam_world`` per view.
