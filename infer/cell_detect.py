@@ -130,8 +130,7 @@ class CellDetector:
         boxes, scores, rows = self.boxes(image)
         best = float(scores.max()) if len(scores) else -np.inf
         keep = np.flatnonzero(scores > self.score_threshold)
-        s = self.shapes.settings
-        keep = keep[:min(self.max_detections, s.candidates // s.per_proposal)]
+        keep = keep[:min(self.max_detections, self.shapes.max_boxes)]
         poses, fit = self.shapes.poses_in_boxes(image, K, boxes[keep], rows[keep])
         found = []
         for i, pose, f in zip(keep, poses, fit):

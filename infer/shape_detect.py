@@ -392,23 +392,29 @@ class ShapeSearchDetector:
                                   np.array([scores[i]], np.float32), np.zeros(0, np.float32)))
         return dets
 
+    @property
+    def max_boxes(self) -> int:
+        """How many boxes :meth:`poses_in_boxes` takes a call: each verifies at least half its
+        ``per_box`` best-fitted poses."""
+        return 2 * self.settings.candidates // self.settings.per_box
+
     def poses_in_boxes(self, image: np.ndarray, K: np.ndarray, boxes: np.ndarray,
                        obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The pose of each given box of a known part: the part's templates fitted inside the
         box and inside its shifted and rescaled copies (stage 2, ``box_scales`` and
-        ``box_shift`` of the settings), the best of them (``2 * per_proposal`` per copy, at most
+        ``box_shift`` of the settings), the best of them (``per_box`` per copy, at most
         ``candidates // n`` per box) refined by the contour refiner (stage 3), the one with the
         best calibrated score kept (the detector's score weights of the part: a right outline,
         not only a well-fitted one). image uint8 [H, W, 3], K [3, 3], boxes [n, 4] xyxy, obj
         [n] (rows of ``objects``); returns poses [n, 4, 4] T_cam_obj and those scores [n], the
         probability that the pose's outline is right (-inf and a NaN pose where no template of
         the part fits the box: outside the depth range, or a part whose renders have no
-        outline). At most ``candidates // per_proposal`` boxes a call."""
+        outline). At most :attr:`max_boxes` boxes a call."""
         s = self.settings
         n = len(boxes)
-        most = s.candidates // s.per_proposal
+        most = self.max_boxes
         if n > most:
-            raise ValueError(f"{n} boxes, at most {most} per call (candidates // per_proposal)")
+            raise ValueError(f"{n} boxes, at most {most} per call (2 * candidates // per_box)")
         poses = np.full((n, 4, 4), np.nan)
         scores = np.full(n, -np.inf)
         if not n:
@@ -419,8 +425,7 @@ class ShapeSearchDetector:
         xywh = np.concatenate([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]], -1)
         variants = box_variants(xywh, s.box_scales, s.box_shift)  # [n, V, 4]
         v = variants.shape[1]
-        # Twice the templates a proposal keeps.
-        k = min(2 * s.per_proposal, s.num_views * s.num_inplane)
+        k = min(s.per_box, s.num_views * s.num_inplane)
         found = []  # (template score, box, pose)
         for o in np.unique(obj):
             if self._empty[o]:

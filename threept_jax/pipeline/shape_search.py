@@ -85,8 +85,12 @@ class ShapeSearchSettings:
       in copies of itself scaled by each of ``box_scales`` about its centre, each also shifted
       by ``box_shift`` of its width or height left, right, up and down: a network's box is off
       by a few pixels, and the fit is only as good as its box.
-    per_proposal: templates kept per (proposal, part); proposal_nms: IoU of the NMS that thins
-      each part's proposals by their best template score.
+    per_proposal: templates kept per (proposal, part), the poses the verification chooses
+      from: 3 rather than 8 spreads a part's share of it over more places (on three held-out
+      sets of 48 images box AP50 +0.02-0.06; docs/benchmarks.md, "Three templates a
+      proposal"); proposal_nms: IoU of the NMS that thins each part's proposals by their best
+      template score.
+    per_box: templates kept per copy of a given box (:func:`box_variants`).
     candidates: poses refined and scored per image, an equal share per part
       (:func:`select_candidates`).
     spread: half-width (px) of the orientation spreading; min_gradient: weakest gradient (Sobel
@@ -105,7 +109,8 @@ class ShapeSearchSettings:
     box_fit: float = 0.6
     box_scales: tuple[float, ...] = (0.9, 1.0, 1.1)
     box_shift: float = 0.08
-    per_proposal: int = 8
+    per_proposal: int = 3
+    per_box: int = 16
     proposal_nms: float = 0.5
     candidates: int = 200
     spread: int = 1
