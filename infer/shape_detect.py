@@ -166,10 +166,19 @@ def _evidence(verifier: CandidateVerifier, crops, renders, inputs):
     return verifier(crops, renders, inputs)
 
 
-#: Inside :func:`shared_searches`: the verified candidates (or None) of the images searched
-#: last, oldest first, keyed by the search (parts' meshes, depth range, settings), the image and
-#: its K; None outside.
-_SHARED: OrderedDict[str, Candidates | None] | None = None
+class _Searched(NamedTuple):
+    """An image's search inside :func:`shared_searches`: its verified candidates (None: none)
+    and the evidence of each verifier that scored them, ``{id(verifier): (verifier,
+    evidence [n])}`` (the verifier held, so its id stays its own); None outside it."""
+
+    candidates: Candidates | None
+    evidence: dict | None
+
+
+#: Inside :func:`shared_searches`: the searches of the images searched last, oldest first,
+#: keyed by the search (parts' meshes, depth range, settings), the image and its K; None
+#: outside.
+_SHARED: OrderedDict[str, _Searched] | None = None
 
 
 @contextlib.contextmanager
@@ -177,9 +186,9 @@ def shared_searches():
     """Within it, an image that a detector of the same parts, depth range and settings searched
     is not searched again: the verified candidates do not depend on the score weights, so the
     shared score, a cell's calibration and the cell detector's own templates search (``make
-    demo``'s settings on the same images) share one search (the last :data:`SHARED_IMAGES`
-    images' candidates are kept). Outside it every call searches, a repeated image too (what a
-    timing of the warm path must see)."""
+    demo``'s settings on the same images) share one search, and one verifier's evidence on
+    it (the last :data:`SHARED_IMAGES` images' candidates are kept). Outside it every call
+    searches, a repeated image too (what a timing of the warm path must see)."""
     global _SHARED
     outer = _SHARED
     if outer is None:  # nested: the outer context's searches stay shared
@@ -280,15 +289,26 @@ class ShapeSearchDetector:
         xyxy = np.clip(xyxy, 0, np.array([hw[1], hw[0], hw[1], hw[0]], np.float32))
         return refined, xyxy, features
 
-    def _evidence(self, image: np.ndarray, K: np.ndarray, c: Candidates) -> np.ndarray:
+    def _evidence(self, image: np.ndarray, K: np.ndarray, c: Candidates,
+                  known: dict | None = None) -> np.ndarray:
         """The verifier's correction [m] to the log-odds of the searched candidates ``c`` of
-        an image: their crops and renders through the verifier, padded to ``candidates`` (one
-        compiled verifier)."""
+        an image (zeros without a verifier): their crops and renders through the verifier,
+        padded to ``candidates`` (one compiled verifier). ``known``: a shared search's
+        evidence (:class:`_Searched`), read when this verifier scored it, else added to."""
         m = len(c.obj)
+        if self.verifier is None:
+            return np.zeros(m, np.float32)
+        if known is not None and id(self.verifier) in known:
+            return known[id(self.verifier)][1]
         pad = np.concatenate([np.arange(m), np.zeros(self.settings.candidates - m, np.int64)])
         crops, renders = verifier_inputs(image, K, c.poses, c.obj, c.xyxy, self.rasters)
         inputs = score_inputs(c.features).astype(np.float32)
-        return np.asarray(_evidence(self.verifier, crops[pad], renders[pad], inputs[pad]))[:m]
+        evidence = np.asarray(_evidence(self.verifier, crops[pad], renders[pad],
+                                        inputs[pad]))[:m]
+        if known is not None:
+            evidence.flags.writeable = False
+            known[id(self.verifier)] = (self.verifier, evidence)
+        return evidence
 
     def candidates(self, image: np.ndarray, K: np.ndarray) -> Candidates | None:
         """The verified candidates of one RGB image [H, W, 3] (uint8) with intrinsics K [3, 3]
@@ -301,17 +321,17 @@ class ShapeSearchDetector:
             raise ValueError(f"image must be uint8 RGB [H, W, 3], got {image.dtype} "
                              f"{image.shape}")
         K = validate_intrinsics(K, "K", image_hw=image.shape[:2]).astype(np.float64)
-        found = self._searched(image, K)
+        found, known = self._searched(image, K)
         if found is None or self.verifier is None:
             return found
-        return found._replace(evidence=self._evidence(image, K, found))
+        return found._replace(evidence=self._evidence(image, K, found, known))
 
-    def _searched(self, image: np.ndarray, K: np.ndarray) -> Candidates | None:
+    def _searched(self, image: np.ndarray, K: np.ndarray) -> _Searched:
         """:meth:`candidates` of a checked image and K without the verifier's evidence (zero):
         searched, or read from :func:`shared_searches`."""
         shared = _SHARED
         if shared is None:
-            return self._candidates(image, K)
+            return _Searched(self._candidates(image, K), None)
         key = self._search.copy()
         key.update(f"|{image.shape}|".encode())
         key.update(image.tobytes())
@@ -324,10 +344,10 @@ class ShapeSearchDetector:
         if found is not None:
             for a in found:
                 a.flags.writeable = False
-        shared[key] = found
+        shared[key] = _Searched(found, {})
         while len(shared) > SHARED_IMAGES:
             shared.popitem(last=False)
-        return found
+        return shared[key]
 
     def _candidates(self, image: np.ndarray, K: np.ndarray) -> Candidates | None:
         """:meth:`candidates` of a checked image and K (float64), searched."""
@@ -462,9 +482,8 @@ class ShapeSearchDetector:
                                                template)
         c = Candidates(refined, obj[cand_box].astype(np.int32), xyxy, features,
                        np.zeros(len(taken), np.float32))
-        evidence = c.evidence if self.verifier is None else self._evidence(image, K, c)
         calibrated = np.asarray(calibrated_score(c.features, self.score_weights[c.obj],
-                                                 evidence))
+                                                 self._evidence(image, K, c)))
         for i in range(len(taken)):
             b = cand_box[i]
             if np.isfinite(calibrated[i]) and calibrated[i] > scores[b]:

@@ -893,11 +893,13 @@ def test_fitting_with_evidence_moves_only_the_bias():
                                rtol=1e-12)
 
 
-def test_the_shipped_verifier_adds_its_evidence_to_the_score(scene, cache):
+def test_the_shipped_verifier_adds_its_evidence_to_the_score(scene, cache, monkeypatch):
     """Without a verifier the evidence is zero; with the shipped one (the default, with the
     shared score or a cell's calibration) each detection's score is the logistic model of its
     candidate's features plus the verifier's evidence on its crop and render (by hand), the
-    same candidates otherwise, from the same search (the evidence is added after it)."""
+    same candidates otherwise, from the same search (the evidence is added after it); inside
+    ``shared_searches`` a detector of the same search with a cell's calibration reuses that
+    evidence (the verifier's inputs built once)."""
     from infer.shape_detect import shared_searches
 
     img, _, objects, detector = scene
@@ -924,11 +926,20 @@ def test_the_shipped_verifier_adds_its_evidence_to_the_score(scene, cache):
     want = 1 / (1 + np.exp(-(z + evidence)))
     for d in checked.detect(img, K):
         assert np.min(np.abs(want - d.score)) < 1e-5
+    same_search = ShapeSearchDetector(objects, depth_range=(330.0, 500.0), settings=SMALL,
+                                      cache_dir=cache / "contours",
+                                      score_weights={1: S.SCORE_WEIGHTS})
+    built = []
+    inputs = D.verifier_inputs
+    monkeypatch.setattr(D, "verifier_inputs", lambda *a: built.append(1) or inputs(*a))
     with shared_searches():
         shared, alone = checked.candidates(img, K), detector.candidates(img, K)
         assert shared.poses is alone.poses  # one search
         np.testing.assert_allclose(shared.evidence, evidence, atol=1e-5)
         np.testing.assert_array_equal(alone.evidence, 0.0)
+        assert same_search.candidates(img, K).evidence is shared.evidence and len(built) == 1
+    np.testing.assert_array_equal(same_search.candidates(img, K).evidence, shared.evidence)
+    assert len(built) == 2  # outside it, computed again
     with pytest.raises(ValueError, match="verifier must be"):
         ShapeSearchDetector(objects, settings=SMALL, cache_dir=cache / "contours",
                             verifier="mine")
