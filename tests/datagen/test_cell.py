@@ -72,9 +72,11 @@ def test_captures_look_down_at_the_tray():
         assert abs(u - 160) < 0.15 * 320 and abs(v - 120) < 0.15 * 240
 
 
-def _rays_hit_lamp(corners, K, T_cam_world, hw, depth, near=1.0, step=2):
+def _rays_hit_lamp(corners, K, T_cam_world, hw, depth, near=1.0, step=2, grow=1.0):
     """Brute force: whether a camera ray through any pixel (every ``step`` px, borders
-    included) meets the rectangle ``corners`` [4, 3] (world) between ``near`` and ``depth``."""
+    included) meets the rectangle ``corners`` [4, 3] (world), scaled by ``grow`` about its
+    centre, between ``near`` and ``depth``."""
+    corners = corners.mean(0) + grow * (corners - corners.mean(0))
     c = corners @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
     ex, ey = c[1] - c[0], c[3] - c[0]
     n = np.cross(ex, ey)
@@ -96,7 +98,7 @@ def test_lamps_never_hide_the_view():
     rng = np.random.default_rng(3)
     cell = C.design_cell(rng, [50.0, 70.0, 120.0], (160, 120))
     hw, centre = (120, 160), np.zeros(3)
-    seen = 0
+    seen = borderline = 0
     for _ in range(300):
         K, T = C.capture(rng, cell)
         depth = float((T[:3, :3] @ centre + T[:3, 3])[2])
@@ -111,13 +113,19 @@ def test_lamps_never_hide_the_view():
         normal = np.cross(corners[1] - corners[0], corners[3] - corners[0])
         assert normal @ (centre - pos) > 0
         hidden = S.hides_view(corners, K, T, hw, depth)
-        assert hidden == _rays_hit_lamp(corners, K, T, hw, depth)
+        # A lamp whose edge grazes the image or the scene's depth within 1 % of its size is
+        # too close to call on a pixel grid (and on another machine's last float bits).
+        inner, outer = (_rays_hit_lamp(corners, K, T, hw, depth, grow=g) for g in (0.99, 1.01))
+        if inner == outer:
+            assert hidden == inner
+        else:
+            borderline += 1
         seen += hidden
         away = S.lamp_out_of_view(pos, centre, size, [K], [T], hw)
         assert away is not None and (away == 1.0) == (not hidden)
         moved = S.lamp_corners(centre + away * (pos - centre), centre, size)
-        assert not _rays_hit_lamp(moved, K, T, hw, depth)
-    assert 10 < seen < 290  # both kinds of lamps were drawn
+        assert not _rays_hit_lamp(moved, K, T, hw, depth, grow=0.99)
+    assert 10 < seen < 290 and borderline < 10  # both kinds of lamps were drawn
 
 
 def test_scenes_stay_in_the_recorded_depth_range(dataset):

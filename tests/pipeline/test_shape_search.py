@@ -174,6 +174,19 @@ def test_proposals_are_the_same_whatever_called_rand_before():
             np.testing.assert_array_equal(boxes, first)
 
 
+def test_settings_refuse_counts_that_cannot_work():
+    """A count below one (or not an integer), or fewer candidates than half a box's templates,
+    is refused naming the field and the fix; the defaults and the tests' small settings pass."""
+    assert S.ShapeSearchSettings().per_box == 16 and SMALL.candidates == 64
+    for bad in ({"per_box": 0}, {"per_proposal": -1}, {"candidates": 2.5}, {"lines": True}):
+        name = next(iter(bad))
+        with pytest.raises(ValueError, match=rf"ShapeSearchSettings\.{name} must be an integer"):
+            S.ShapeSearchSettings(**bad)
+    with pytest.raises(ValueError, match="raise candidates or lower per_box"):
+        S.ShapeSearchSettings(candidates=7, per_box=16)
+    S.ShapeSearchSettings(candidates=8, per_box=16)  # exactly half: one box a call
+
+
 def test_each_part_gets_its_share_of_the_verified_candidates():
     """select_candidates against a loop: every part's best n // P, then the best of the rest,
     best score first; a part with fewer candidates than its share leaves the rest to others."""

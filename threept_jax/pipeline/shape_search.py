@@ -119,6 +119,19 @@ class ShapeSearchSettings:
     contour: ContourSettings = ContourSettings(scales=(0.04, 0.02, 0.01), iterations=2)
     lines: int = 100
 
+    def __post_init__(self):
+        defaults = {f.name: f.default for f in dataclasses.fields(self)}
+        for name in ("num_views", "num_inplane", "num_points", "max_proposals", "per_proposal",
+                     "per_box", "candidates", "lines"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"ShapeSearchSettings.{name} must be an integer >= 1, got "
+                                 f"{v!r} (the default is {defaults[name]})")
+        if 2 * self.candidates < self.per_box:
+            raise ValueError(f"ShapeSearchSettings: candidates ({self.candidates}) must be at "
+                             f"least half of per_box ({self.per_box}), so that a given box's "
+                             f"poses are verified: raise candidates or lower per_box")
+
 
 class ShapeTemplates(NamedTuple):
     """Contour templates of O objects (stacked; numpy or jax arrays).
