@@ -318,11 +318,6 @@ def run_scene(images: Sequence[np.ndarray], cameras: Sequence[Camera | np.ndarra
         raise ValueError("run_scene needs a detector: infer.load(DETECTOR_RUN, ...) or "
                          "infer.load(detector='templates'); to refine poses from another "
                          "method use infer.refine")
-    if models.shape_search is not None and len(images) > 1:
-        which = "cell" if models.cell is not None else "templates"
-        raise ValueError(f"the {which} detector is single-view for now: run it per view, or "
-                         "use 3PT-D for a rig's fused detections (infer.load(detector='3pt'), "
-                         "--detector 3pt)")
     detector = models.scene_detector(objects, **detector_options)
     refining = refine and models.refiner is not None
     renderer = models.pose_renderer(objects) if with_masks else None

@@ -55,6 +55,12 @@ class RefineObject:
     mesh: Mesh
     symmetries: np.ndarray
 
+    @property
+    def center(self) -> np.ndarray:
+        """[3] the centre of the mesh's bounding box (mm, object frame), as
+        :class:`~infer.onboarding.OnboardedObject`'s ``center``."""
+        return np.asarray(self.mesh.center, np.float64)
+
 
 def refine_objects(meshes: Mapping[int, str | os.PathLike | Mesh], units: str = "mm"
                    ) -> list[RefineObject]:

@@ -12,6 +12,12 @@ at least ``min_angle_deg`` apart, each refined by mean shift on that density (fi
 template grid), become the instance's hypotheses, the translation puts the
 object's bounding-sphere centre at the triangulated point.
 
+Detectors whose detections carry poses rather than an orientation distribution (the templates
+and cell detectors, ``template_scores`` empty) are fused by :func:`fuse_posed_views`: the same
+matching and triangulation, the members' own poses as the hypotheses, each moved along its
+view's ray to the triangulated depth (one view sees depth only through an outline's size; a
+rig sees it by parallax).
+
 Masks are the silhouettes of the best pose rendered in each view, each pixel going to the
 highest-scoring instance that covers it (:func:`render_masks`); with a refiner
 (``infer.run_scene``) the same rule at the refined poses.
@@ -185,6 +191,9 @@ def find_instances(detector: SceneDetector, images: Sequence[np.ndarray],
         T_wc = np.asarray(invert(jnp.asarray(T_cam_world[0])))
         instances = [dataclasses.replace(x, T_world_obj=T_wc @ x.T_world_obj,
                                          hypotheses=T_wc[None] @ x.hypotheses) for x in instances]
+    elif not isinstance(detector, SceneDetector):  # the templates and cell detectors: poses
+        instances = fuse_posed_views(detections, Ks, T_cam_world, detector.objects,
+                                     min_views=min_views)
     else:
         objects = {o.obj_id: o for o in detector.objects}
         instances = fuse_views(detections, Ks, T_cam_world, objects, min_views=min_views,
@@ -198,6 +207,56 @@ def find_instances(detector: SceneDetector, images: Sequence[np.ndarray],
         for x, m in zip(instances, masks):
             x.masks.update(m)
     return instances
+
+
+def fuse_posed_views(detections: Sequence[Sequence[Detection]], Ks: np.ndarray,
+                     T_cam_world: np.ndarray, objects: Sequence, *, min_views: int = 3,
+                     max_epipolar_px: float = 10.0, num_hypotheses: int = 8) -> list[Instance]:
+    """Multi-view instances from detections that carry poses (module docstring): matched
+    across views by :func:`~threept_jax.geometry.triangulation.match_across_views` (box
+    centres on epipolar lines, one part; tracks of at least ``min_views`` views, at least 2).
+    A track's hypotheses: every member's poses, its best-scored view first, at most
+    ``num_hypotheses``, each brought to the world frame with its centre (``objects``'
+    ``center``) moved along its view's ray to the depth of the triangulated point in that
+    view; its score is the members' mean. A detection in no track is an instance of its own
+    view (its poses, its depth from the outline's size): a rig keeps what one view sees."""
+    V = len(detections)
+    centres = [np.array([(d.box[:2] + d.box[2:]) / 2 - 0.5 for d in dets]).reshape(-1, 2)
+               for dets in detections]
+    labels = [np.array([d.obj_id for d in dets], np.int64) for dets in detections]
+    tracks = match_across_views(centres, Ks, T_cam_world, labels=labels,
+                                max_epipolar_px=max_epipolar_px,
+                                min_views=max(2, min(min_views, V)))
+    T_world_cam = np.asarray(invert(jnp.asarray(T_cam_world)), np.float64)
+    middle = {o.obj_id: np.asarray(o.center, np.float64) for o in objects}
+    groups = [[(v, int(i)) for v, i in enumerate(row) if i >= 0] for row in tracks.detections]
+    points = [np.append(np.asarray(p, np.float64), 1.0) for p in tracks.points]
+    tracked = {m for g in groups for m in g}
+    for v, dets in enumerate(detections):
+        for i in range(len(dets)):
+            if (v, i) not in tracked:
+                groups.append([(v, i)])
+                points.append(None)
+    out = []
+    for group, X in zip(groups, points):
+        members = sorted(((v, detections[v][i]) for v, i in group), key=lambda vd: -vd[1].score)
+        c = middle[members[0][1].obj_id]
+        hyps, scores = [], []
+        for v, det in members:
+            for T, s in zip(np.asarray(det.poses, np.float64), det.pose_scores):
+                if X is not None:  # along the ray through its centre, to the point's depth
+                    centre = T[:3, :3] @ c + T[:3, 3]
+                    z = (np.asarray(T_cam_world[v], np.float64) @ X)[2]
+                    T = T.copy()
+                    T[:3, 3] += centre * (z / centre[2] - 1.0)
+                hyps.append(T_world_cam[v] @ T)
+                scores.append(s)
+        hyps = np.stack(hyps[:num_hypotheses]).astype(np.float32)
+        out.append(Instance(members[0][1].obj_id, float(np.mean([d.score for _, d in members])),
+                            hyps[0], hyps, np.asarray(scores[:num_hypotheses], np.float32),
+                            {v: d.box for v, d in members}, {}))
+    out.sort(key=lambda x: -x.score)
+    return out
 
 
 def render_masks(instances: Sequence[Instance], poses: Sequence[np.ndarray],
