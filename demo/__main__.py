@@ -25,12 +25,19 @@ downloaded and nothing from outside the repository:
 3. **No training, score calibrated on the cell** (``python -m train.templates_score --cell``):
    the templates detector again, its score a logistic model per part fitted on the adapted
    setting's first 30 training images (what a right candidate of each part looks like; no
-   network is trained; the verifier corrects it), on the same test images. Settings 1-3 look
+   network is trained; the verifier corrects it), on the same test images. Settings 1-4 look
    at the same images with the same parts, so the templates detector searches each image once
    (:func:`infer.shape_detect.shared_searches`) and each setting scores what it found its own
    way: the BOP ``time`` of settings 2 and 3 leaves the search out (``bench/shape_search.py``
    times it).
-4. **Zero-shot**: five other procedural parts, never seen in training, are onboarded from
+4. **No training, two calibrated views**: the same test images, each scene's two images (two
+   shots of the same tray from known camera poses: a second camera, or an eye-in-hand camera
+   moved by the robot) as one calibrated capture (``python -m infer bop --targets
+   multiview``): the templates detector searches each image (the search of setting 2, shared),
+   a part's detections are matched across the two views and moved to the triangulated depth
+   (:func:`infer.scene.fuse_posed_views`), and the contour refiner refines them in both views.
+   One view sees a part's depth only through its outline's size.
+5. **Zero-shot**: five other procedural parts, never seen in training, are onboarded from
    their meshes alone and detected by the shipped models, as a user who installs threept_jax
    gets them, in a cell of their own (val scenes choose the overlay threshold, test scenes give
    the figures), and refined by the shipped refiner when one ships, else by the contour
@@ -45,7 +52,7 @@ steps) are printed, and a refiner that does not make held-out poses better is no
 skipped (a killed data generation redoes only its unfinished scene, a killed training restarts
 from its last checkpoint). Outputs go to ``--out`` (default ``runs/demo``): ``report.json``,
 the settings' overlays (``adapted/test/overlays``, ``no_training/test/overlays``,
-``calibrated/test/overlays``, ``zero_shot/test/overlays``: boxes, the
+``calibrated/test/overlays``, ``two_views/test/overlays``, ``zero_shot/test/overlays``: boxes, the
 contours of the refined poses in colour and of the poses before refinement in white, at least
 640 px wide, only detections above the best-F1
 threshold of the val scenes). What 2 cores reach in these minutes, and the curve of AP against
@@ -106,6 +113,34 @@ def calibrated(adapted_dir: pathlib.Path, out: pathlib.Path) -> dict:
                       instances=adapt.INSTANCES, refiner=CONTOUR, templates_score=path)
 
 
+def write_captures(data: pathlib.Path) -> None:
+    """Writes ``data/test_targets_multiview_bop25.json``: each scene of ``data``'s ``val_pbr``
+    split, all its images, as one multi-view group (what ``--targets multiview`` runs)."""
+    from threept_jax.data import bop
+
+    split = bop.BopDataset(data).split("val_pbr")
+    bop.write_multiview_targets(data / bop.MULTIVIEW_TARGETS_FILE, [
+        bop.MultiviewTarget(s, tuple((None, i) for i in split.scene(s).image_ids))
+        for s in split.scene_ids])
+
+
+def two_views(adapted_dir: pathlib.Path, out: pathlib.Path, threshold: float) -> dict:
+    """The no-training setting on the test scenes' two images as one calibrated capture each
+    (their cameras' ``cam_R_w2c``/``cam_t_w2c``; the groups written to the test data's
+    ``test_targets_multiview_bop25.json``), refined by the contour refiner in both views;
+    overlays above ``threshold`` (the no-training setting's, from its val scenes)."""
+    from infer.shipped import CONTOUR
+    from train import adapt
+
+    data = adapted_dir / "data" / "test"
+    write_captures(data)
+    result = adapt.figures(adapt.infer_bop(
+        None, data, out / "test", adapted_dir / "cache", adapt.max_detections(adapt.INSTANCES),
+        overlays=6, overlay_threshold=threshold, refiner=CONTOUR, targets="multiview"))
+    return {"test": result, "overlay_threshold": threshold, "refiner": CONTOUR,
+            "overlays": str(out / "test" / "overlays")}
+
+
 def summary(name: str, figs: dict) -> list[str]:
     """One setting's printed lines: box AP, then 6D AP, AP-mm and segmentation AP (before and
     after refinement when refining, :func:`train.adapt.summary_lines`)."""
@@ -149,7 +184,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     from infer.shape_detect import shared_searches
     from train import adapt
 
-    # The first three settings look at the same images with the same parts: the templates
+    # The first four settings look at the same images with the same parts: the templates
     # detector searches each image once (in the cell detector's test), and the shared score
     # and the cell's calibration score the same candidates.
     with shared_searches():
@@ -173,6 +208,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
         tuned = calibrated(args.out / "adapted", args.out / "calibrated")
         print(f"   ({time.perf_counter() - start:.0f} s)")
 
+        print(f"\n== no training, two calibrated views: each test scene's two images as one "
+              f"capture -> {args.out / 'two_views'}", flush=True)
+        start = time.perf_counter()
+        rig = two_views(args.out / "adapted", args.out / "two_views",
+                        templates["overlay_threshold"])
+        print(f"   ({time.perf_counter() - start:.0f} s)")
+
     print(f"\n== zero-shot: the shipped models on 5 parts never seen in training -> "
           f"{args.out / 'zero_shot'}", flush=True)
     start = time.perf_counter()
@@ -180,7 +222,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     print(f"   ({time.perf_counter() - start:.0f} s)")
 
     report = {"adapted": adapted, "no_training": templates, "calibrated": tuned,
-              "zero_shot": unseen,
+              "two_views": rig, "zero_shot": unseen,
               "minutes": (time.perf_counter() - total) / 60}
     (args.out / "report.json").write_text(json.dumps(report, indent=1, default=float))
     from train.adapt import refiner_lines
@@ -194,11 +236,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
                       "same images)", templates["test"]),
              *summary("no training, score calibrated on the cell (a score per part fitted on "
                       "30 training images, and the verifier; same images)", tuned["test"]),
+             *summary("no training, two calibrated views (the same images, each scene's two "
+                      "as one capture)", rig["test"]),
              *summary("zero-shot (the shipped models, 5 parts never seen)", unseen["test"])]
     print(f"\ndone in {report['minutes']:.1f} min. Full images, all parts queried, new scenes:\n"
           + "\n".join(f"  {line}" for line in lines)
           + f"\nReport {args.out / 'report.json'}; overlays {adapted['overlays']}, "
-          f"{templates['overlays']}, {tuned['overlays']} and {unseen['overlays']}")
+          f"{templates['overlays']}, {tuned['overlays']}, {rig['overlays']} and "
+          f"{unseen['overlays']}")
     return report
 
 

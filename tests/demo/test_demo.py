@@ -41,7 +41,7 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
         calls["shared"].append(shared())
         calls.setdefault("cache", {})[out.name] = cache
         # A worse "after" than "before" is reported as it is.
-        return {"test": _figures(0.05, refined=refiner is not None),
+        return {"test": _figures(0.05, refined=refiner is not None), "overlay_threshold": 0.2,
                 "overlays": str(out / "test" / "overlays")}
 
     import infer.shipped
@@ -59,12 +59,21 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
     from train import cell_score
 
     monkeypatch.setattr(cell_score, "calibrate_cell", fake_calibrate)
+    monkeypatch.setattr(demo, "write_captures", lambda data: calls.setdefault("captures", data))
+
+    def fake_infer_bop(workdir, dataset, out, cache, max_detections, **options):
+        calls["two_views"] = (workdir, dataset, cache, options)
+        calls["shared"].append(shared())
+        return "result"
+
+    monkeypatch.setattr(adapt, "infer_bop", fake_infer_bop)
+    monkeypatch.setattr(adapt, "figures", lambda result: _figures(0.05, refined=True))
     report = demo.main(["--out", str(tmp_path / "out")])
 
     argv = calls["adapt"]
-    # The adapted, no-training and calibrated settings (the same images and parts) share the
-    # templates detector's searches; the zero-shot setting (other parts) does not.
-    assert calls["shared"] == [True, True, True, False] and not shared()
+    # The adapted, no-training, calibrated and two-view settings (the same images and parts)
+    # share the templates detector's searches; the zero-shot setting (other parts) does not.
+    assert calls["shared"] == [True, True, True, True, False] and not shared()
     assert float(argv[argv.index("--refiner-minutes") + 1]) == 0  # no 3PT-R by default
     assert argv[argv.index("--detector") + 1] == "cell"  # the dense cell detector
     assert argv[argv.index("--from") + 1] == "scratch"  # (3PT-D's, with --detector 3pt)
@@ -83,13 +92,20 @@ def test_demo_refines_both_settings_and_reports_before_and_after(tmp_path, monke
     cache = tmp_path / "out" / "adapted" / "cache"
     assert calls["cache"]["no_training"] == calls["cache"]["calibrated"] == cache
     assert json.loads(score_file.read_text()) == {"parts": {"1": [0.0] * 9}}
+    # Two views: the templates detector (no workdir) on the same test scenes, grouped two
+    # images a capture, refined by the contour refiner, the no-training setting's threshold.
+    assert calls["captures"] == data / "test"
+    workdir, dataset, cache_2v, options = calls["two_views"]
+    assert (workdir, dataset, cache_2v) == (None, data / "test", cache)
+    assert options["targets"] == "multiview" and options["refiner"] == "contour"
+    assert options["overlay_threshold"] == 0.2  # no_training's val best-F1 threshold (faked)
     saved = json.loads((tmp_path / "out" / "report.json").read_text())
-    for setting in ("adapted", "no_training", "calibrated", "zero_shot"):
+    for setting in ("adapted", "no_training", "calibrated", "two_views", "zero_shot"):
         assert saved[setting]["test"]["pose_ap_initial"] == pytest.approx(0.1)
         assert saved[setting]["test"]["pose_ap_mm_initial"] == pytest.approx(0.1)
     assert report["zero_shot"]["test"]["pose_ap"] == pytest.approx(0.05)
     out = capsys.readouterr().out.split("done in")[1]
-    assert out.count("before refinement: 6D AP 0.100, AP-mm 0.100, segm AP 0.100") == 4
+    assert out.count("before refinement: 6D AP 0.100, AP-mm 0.100, segm AP 0.100") == 5
     assert "after refinement:  6D AP 0.300, AP-mm 0.150, segm AP 0.250" in out
     assert "after refinement:  6D AP 0.050, AP-mm 0.025, segm AP 0.250" in out
 
@@ -108,15 +124,40 @@ def test_without_a_trained_refiner_the_contour_refiner_refines(tmp_path, monkeyp
 
     def fake_test(*a, refiner=None, **k):
         seen.append(refiner)
-        return {"test": _figures(0.05, refined=refiner is not None), "overlays": "o"}
+        return {"test": _figures(0.05, refined=refiner is not None), "overlays": "o",
+                "overlay_threshold": 0.2}
+
+    def fake_infer_bop(*a, refiner=None, **k):
+        seen.append(refiner)
 
     monkeypatch.setattr(adapt, "test", fake_test)
+    monkeypatch.setattr(adapt, "infer_bop", fake_infer_bop)
+    monkeypatch.setattr(adapt, "figures", lambda result: _figures(0.05, refined=True))
+    monkeypatch.setattr(demo, "write_captures", lambda data: None)
     from train import cell_score
 
     monkeypatch.setattr(cell_score, "calibrate_cell", lambda *a: {"parts": {}})
     demo.main(["--out", str(tmp_path)])
-    assert seen == ["contour"] * 3  # no training, calibrated, then zero-shot
+    assert seen == ["contour"] * 4  # no training, calibrated, two views, then zero-shot
     out = capsys.readouterr().out.split("done in")[1]
-    assert out.count("before refinement: 6D AP 0.100") == 4
+    assert out.count("before refinement: 6D AP 0.100") == 5
     assert "the trained refiner is not used (it does not make held-out poses better): the " \
            "contour refiner refines instead" in out
+
+
+def test_write_captures_groups_each_scenes_images(tmp_path):
+    """Every image of a scene in one group, read back as ``--targets multiview`` reads it."""
+    from threept_jax.data import bop
+
+    K = [500.0, 0, 320, 0, 500, 240, 0, 0, 1]
+    for scene, images in ((4, (0, 1)), (7, (0, 1, 2))):
+        folder = tmp_path / "val_pbr" / f"{scene:06d}"
+        folder.mkdir(parents=True)
+        (folder / "scene_camera.json").write_text(json.dumps({str(i): {
+            "cam_K": K, "cam_R_w2c": [1, 0, 0, 0, 1, 0, 0, 0, 1], "cam_t_w2c": [0, 0, 0],
+            "depth_scale": 1.0} for i in images}))
+    demo.write_captures(tmp_path)
+    assert json.loads((tmp_path / bop.MULTIVIEW_TARGETS_FILE).read_text()) == [
+        {"scene_id": 4, "im_ids": [0, 1]}, {"scene_id": 7, "im_ids": [0, 1, 2]}]
+    assert [t.views for t in bop.load_multiview_targets(tmp_path / bop.MULTIVIEW_TARGETS_FILE)
+            ] == [((None, 0), (None, 1)), ((None, 0), (None, 1), (None, 2))]
