@@ -7,6 +7,7 @@ import pytest
 from scipy.optimize import least_squares
 
 from threept_jax.geometry.triangulation import (
+    fuse_ray_estimates,
     match_across_views,
     reprojection_errors,
     triangulate,
@@ -170,3 +171,38 @@ def test_match_bad_inputs_raise():
         match_across_views([np.zeros((1, 2))] * 2, K, T, min_views=1)
     with pytest.raises(ValueError, match="uv must be"):
         triangulate(np.zeros((2, 3)), K, T, np.ones(2, bool))
+
+
+def test_fuse_ray_estimates_is_the_weighted_least_squares_point():
+    """Against SciPy minimising sum_v (x - p_v)^T A_v (x - p_v) directly; two rays at right
+    angles, each estimate wrong only along its ray, meet where they cross; estimates along one
+    ray average their depths by inverse variance (hand-derived)."""
+    rng = np.random.default_rng(3)
+    p = rng.normal(0, 50, (4, 3)) + [0, 0, 500]
+    o = rng.normal(0, 200, (4, 3))
+    dep, lat = rng.uniform(5, 30, 4), rng.uniform(0.5, 3, 4)
+
+    def residuals(x):
+        out = []
+        for pv, ov, d, s in zip(p, o, dep, lat):
+            r = (pv - ov) / np.linalg.norm(pv - ov)
+            e = x - pv
+            along = r @ e
+            out += [along / d, *((e - along * r) / s)]
+        return np.array(out)
+
+    want = least_squares(residuals, p.mean(0), xtol=1e-14, ftol=1e-14, gtol=1e-14).x
+    np.testing.assert_allclose(fuse_ray_estimates(p, o, dep, lat), want, atol=1e-6)
+
+    cross = np.array([10.0, -20.0, 400.0])
+    origins = np.array([[-400.0, -20.0, 400.0], [10.0, -20.0, 0.0]])  # along x, along z
+    rays = (cross - origins) / np.linalg.norm(cross - origins, axis=1, keepdims=True)
+    wrong = cross + rays * np.array([[35.0], [-60.0]])
+    np.testing.assert_allclose(fuse_ray_estimates(wrong, origins, [20.0, 20.0], [0.01, 0.01]),
+                               cross, atol=0.01)
+
+    origin = np.zeros((2, 3))
+    along = np.array([[0.0, 0.0, 400.0], [0.0, 0.0, 440.0]])
+    got = fuse_ray_estimates(along, origin, [10.0, 20.0], [1.0, 1.0])
+    np.testing.assert_allclose(got, [0, 0, (400 / 100 + 440 / 400) / (1 / 100 + 1 / 400)],
+                               atol=1e-9)

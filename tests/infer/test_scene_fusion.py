@@ -72,12 +72,13 @@ def test_fuse_views_recovers_poses_of_a_ring_rig():
         np.testing.assert_allclose(x.T_world_obj[:3, 3], T[:3, 3], atol=3.0)
 
 
-def test_fuse_posed_views_puts_each_pose_at_the_triangulated_depth():
+def test_fuse_posed_views_puts_each_pose_at_the_fused_centre():
     """Detections that carry poses (the templates detector's), each at a wrong depth (5 % too
-    far along its ray: what an outline's size gets wrong), fused by a two-camera rig: the
-    matched ones move to the triangulated depth (3 mm of the truth, from 30-40 mm), keep their
-    turn, and carry every member's pose; a part only one view sees stays, at its own pose; a
-    detection of another part at the same place is not merged."""
+    far along its ray: what an outline's size gets wrong), fused by a two-camera rig 500 mm
+    apart: the matched ones move to their fused centre (3 mm of the truth, from 30-40 mm: each
+    view's image place pins the other's depth), keep their turn, and carry every member's
+    pose; a part only one view sees stays, at its own pose; a detection of another part at the
+    same place is not merged."""
     rng = np.random.default_rng(1)
     templates = super_fibonacci_rotations(64)
     K = np.array([[800.0, 0, 320], [0, 790.0, 240], [0, 0, 1]])
@@ -120,7 +121,7 @@ def test_fuse_posed_views_puts_each_pose_at_the_triangulated_depth():
         x = match[0]
         assert x.score == pytest.approx((0.8 - 0.1 * i + 0.7 - 0.1 * i) / 2)
         assert x.hypotheses.shape == (2, 4, 4)
-        for h in x.hypotheses:  # both members, each at the triangulated depth
+        for h in x.hypotheses:  # both members, each at the fused centre
             np.testing.assert_allclose(h[:3, :3], T[:3, :3], atol=1e-5)
             err = np.linalg.norm(h[:3, :3] @ objects[obj_id].center + h[:3, 3]
                                  - (T[:3, :3] @ objects[obj_id].center + T[:3, 3]))

@@ -336,3 +336,23 @@ def match_across_views(
         reprojection_error_px=np.asarray(out_err, np.float64).reshape(M),
         labels=np.asarray(out_lab, np.int64).reshape(M),
     )
+
+
+def fuse_ray_estimates(points: np.ndarray, origins: np.ndarray, depth_sigma: np.ndarray,
+                       lateral_sigma: np.ndarray) -> np.ndarray:
+    """[3] one point from per-view estimates of it, each sure across its view's ray and unsure
+    along it: ``points`` [n, 3] (world, mm), seen from camera centres ``origins`` [n, 3], with
+    standard deviations ``depth_sigma`` [n] along the ray and ``lateral_sigma`` [n] across it
+    (mm). The weighted least-squares point: argmin_x sum_v (x - p_v)^T A_v (x - p_v) with
+    A_v = (I - r r^T) / lateral^2 + r r^T / depth^2, r the unit ray. Rays far apart pin each
+    other's depth (triangulation); nearly parallel ones average it. A single-view pose's
+    outline fixes where its centre lies in the image far better than how far away (its
+    size), which is what the two sigmas say."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    r = p - np.asarray(origins, np.float64).reshape(-1, 3)
+    r /= np.linalg.norm(r, axis=-1, keepdims=True)
+    rr = np.einsum("ni,nj->nij", r, r)
+    lat = 1.0 / np.asarray(lateral_sigma, np.float64).reshape(-1, 1, 1) ** 2
+    dep = 1.0 / np.asarray(depth_sigma, np.float64).reshape(-1, 1, 1) ** 2
+    A = lat * (np.eye(3) - rr) + dep * rr
+    return np.linalg.solve(A.sum(0), np.einsum("nij,nj->i", A, p))
