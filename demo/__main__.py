@@ -34,7 +34,7 @@ downloaded and nothing from outside the repository:
    shots of the same tray from known camera poses: a second camera, or an eye-in-hand camera
    moved by the robot) as one calibrated capture (``python -m infer bop --targets
    multiview``): the templates detector searches each image (the search of setting 2, shared),
-   a part's detections are matched across the two views and moved to the triangulated depth
+   a part's detections are matched across the two views and moved to their centres' fusion
    (:func:`infer.scene.fuse_posed_views`), and the contour refiner refines them in both views.
    One view sees a part's depth only through its outline's size.
 5. **Zero-shot**: five other procedural parts, never seen in training, are onboarded from
