@@ -176,8 +176,9 @@ def find_instances(detector: SceneDetector, images: Sequence[np.ndarray],
       Ks: V intrinsics [3, 3] (pixels, of each image as given).
       T_cam_world: [V, 4, 4] world -> camera extrinsics (mm); required when V > 1.
       with_masks: render each instance's silhouette in every view.
-      min_views: multi-view instances must be seen in at least this many views (3PT: 3;
-        capped at V).
+      min_views: 3PT-D's multi-view instances must be seen in at least this many views (3PT:
+        3; capped at V). The templates and cell detectors keep every detection
+        (:func:`fuse_posed_views`: those two views or more match are fused).
 
     Returns :class:`Instances`, best first.
     """
@@ -192,8 +193,7 @@ def find_instances(detector: SceneDetector, images: Sequence[np.ndarray],
         instances = [dataclasses.replace(x, T_world_obj=T_wc @ x.T_world_obj,
                                          hypotheses=T_wc[None] @ x.hypotheses) for x in instances]
     elif not isinstance(detector, SceneDetector):  # the templates and cell detectors: poses
-        instances = fuse_posed_views(detections, Ks, T_cam_world, detector.objects,
-                                     min_views=min_views)
+        instances = fuse_posed_views(detections, Ks, T_cam_world, detector.objects)
     else:
         objects = {o.obj_id: o for o in detector.objects}
         instances = fuse_views(detections, Ks, T_cam_world, objects, min_views=min_views,
@@ -217,15 +217,15 @@ DEPTH_SHARE, CENTRE_PX = 0.03, 3.0
 
 
 def fuse_posed_views(detections: Sequence[Sequence[Detection]], Ks: np.ndarray,
-                     T_cam_world: np.ndarray, objects: Sequence, *, min_views: int = 3,
+                     T_cam_world: np.ndarray, objects: Sequence, *,
                      max_epipolar_px: float = 10.0, num_hypotheses: int = 8,
                      max_depth_change: float = 0.15) -> list[Instance]:
     """Multi-view instances from detections that carry poses (module docstring).
 
     Matched across views by :func:`~threept_jax.geometry.triangulation.match_across_views`:
     the projected centres of their poses (``objects``' ``center``; a box's centre is not the
-    part's where the image's side cuts it) on each other's epipolar lines, one part, tracks of
-    at least ``min_views`` views (at least 2). A track's centre is its members' centres fused
+    part's where the image's side cuts it) on each other's epipolar lines, one part, in two
+    views or more. A track's centre is its members' centres fused
     by :func:`~threept_jax.geometry.triangulation.fuse_ray_estimates` (each sure across its
     ray, :data:`CENTRE_PX`, unsure along it, :data:`DEPTH_SHARE`: views far apart triangulate
     the depth, nearly parallel ones average it); the track is kept where that centre's depth
@@ -234,7 +234,6 @@ def fuse_posed_views(detections: Sequence[Sequence[Detection]], Ks: np.ndarray,
     its best-scored view first, at most ``num_hypotheses``, in the world frame, each moved to
     put its centre there; its score is the members' mean. A detection in no kept track is an
     instance of its own view, at its own pose: a rig keeps what one view sees."""
-    V = len(detections)
     Ks = np.asarray(Ks, np.float64)
     T_cw = np.asarray(T_cam_world, np.float64)
     middle = {o.obj_id: np.asarray(o.center, np.float64) for o in objects}
@@ -249,7 +248,7 @@ def fuse_posed_views(detections: Sequence[Sequence[Detection]], Ks: np.ndarray,
     labels = [np.array([d.obj_id for d in dets], np.int64) for dets in detections]
     tracks = match_across_views(seen, Ks, T_cam_world, labels=labels,
                                 max_epipolar_px=max_epipolar_px,
-                                min_views=max(2, min(min_views, V)))
+                                min_views=2)
     groups, points = [], []
     for row in tracks.detections:
         group = [(v, int(i)) for v, i in enumerate(row) if i >= 0]

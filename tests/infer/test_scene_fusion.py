@@ -112,7 +112,7 @@ def test_fuse_posed_views_puts_each_pose_at_the_fused_centre():
                   [detection(1, o, T, 0.7 - 0.1 * i, far=0.96) for i, (o, T) in enumerate(gt)]
                   + [detection(1, 3, lone, 0.4)]]  # another part where view 0 saw part 7
     instances = fuse_posed_views(detections, Ks, T_cw.astype(np.float32),
-                                 list(objects.values()), min_views=3)
+                                 list(objects.values()))
     assert len(instances) == len(gt) + 2
     for i, (obj_id, T) in enumerate(gt):
         match = [x for x in instances if x.obj_id == obj_id and len(x.boxes) == 2
