@@ -530,7 +530,7 @@ def test_bad_input_is_refused_with_the_reason(scene):
         ShapeSearchDetector([])
 
 
-def test_api_runs_the_templates_detector_on_one_view_only(scene, cache):
+def test_api_runs_the_templates_detector_on_one_view_and_on_a_rig(scene, cache):
     img, truth, objects, _ = scene
     models = infer.load(detector="templates", refiner="contour", cache_dir=cache)
     assert models.detector is None and models.shape_search is not None
@@ -538,9 +538,23 @@ def test_api_runs_the_templates_detector_on_one_view_only(scene, cache):
     found = infer.run_scene([img], [K], objects, models, refine=False, with_masks=False,
                             depth_range=(330.0, 500.0), max_detections=10)
     assert {1, 2} <= {x.obj_id for x in found}
-    with pytest.raises(ValueError, match="single-view"):
-        infer.run_scene([img, img], [infer.Camera(K, T_cam_world=np.eye(4))] * 2, objects,
-                        models, refine=False)
+    # A rig: the scene rendered again by a second camera 40 mm to the side (the world is the
+    # first camera's frame). Each part is found in both views and fused
+    # (infer.scene.fuse_posed_views), its centre within 6 % of its distance of the truth.
+    second = np.eye(4)
+    second[0, 3] = 40.0
+    meshes = {o.obj_id: o.mesh for o in objects}
+    img2 = _render([(meshes[o], second @ T) for o, T in truth.items()], _background(2))
+    rig = infer.run_scene([img, img2], [infer.Camera(K, T_cam_world=np.eye(4)),
+                                        infer.Camera(K, T_cam_world=second)], objects, models,
+                          refine=False, with_masks=False, depth_range=(330.0, 500.0),
+                          max_detections=10)
+    for obj_id, T in truth.items():
+        c_gt = T[:3, :3] @ meshes[obj_id].center + T[:3, 3]
+        near = [x for x in rig if x.obj_id == obj_id and sorted(x.boxes) == [0, 1]
+                and np.linalg.norm(x.T_world_obj[:3, :3] @ meshes[obj_id].center
+                                   + x.T_world_obj[:3, 3] - c_gt) < 0.06 * c_gt[2]]
+        assert near, [(x.obj_id, sorted(x.boxes), x.T_world_obj[:3, 3]) for x in rig]
     with pytest.raises(ValueError, match="num_scales"):
         infer.run_scene([img], [K], objects, models, refine=False, num_scales=2)
     with pytest.raises(ValueError, match="detector must be one of"):
