@@ -239,12 +239,11 @@ def fuse_posed_views(detections: Sequence[Sequence[Detection]], Ks: np.ndarray,
     middle = {o.obj_id: np.asarray(o.center, np.float64) for o in objects}
     T_world_cam = np.asarray(invert(jnp.asarray(T_cam_world)), np.float64)
 
-    def centre(det):  # the centre of det's pose, in its view's camera frame
-        T = np.asarray(det.poses[0], np.float64)
-        return T[:3, :3] @ middle[det.obj_id] + T[:3, 3]
-
-    seen = [np.array([(K @ centre(d))[:2] / centre(d)[2] for d in dets]).reshape(-1, 2)
-            for dets, K in zip(detections, Ks)]
+    # The centre of each detection's best pose, in its view's camera frame, and its pixel.
+    centres = [np.array([np.asarray(d.poses[0], np.float64)[:3, :3] @ middle[d.obj_id]
+                         + np.asarray(d.poses[0], np.float64)[:3, 3] for d in dets]
+                        ).reshape(-1, 3) for dets in detections]
+    seen = [(c @ K.T)[:, :2] / c[:, 2:] for c, K in zip(centres, Ks)]
     labels = [np.array([d.obj_id for d in dets], np.int64) for dets in detections]
     tracks = match_across_views(seen, Ks, T_cam_world, labels=labels,
                                 max_epipolar_px=max_epipolar_px,
@@ -253,7 +252,7 @@ def fuse_posed_views(detections: Sequence[Sequence[Detection]], Ks: np.ndarray,
     for row in tracks.detections:
         group = [(v, int(i)) for v, i in enumerate(row) if i >= 0]
         views = [v for v, _ in group]
-        own = np.array([centre(detections[v][i]) for v, i in group])  # [n, 3] camera frames
+        own = np.array([centres[v][i] for v, i in group])  # [n, 3] camera frames
         X = fuse_ray_estimates(
             np.einsum("nij,nj->ni", T_world_cam[views, :3, :3], own) + T_world_cam[views, :3, 3],
             T_world_cam[views, :3, 3], DEPTH_SHARE * own[:, 2],
