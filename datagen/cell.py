@@ -21,6 +21,12 @@ Geometry (mm, world z up, the tray floor at z = 0 centred on the origin, as ``la
 * each capture: distance D x (1 +- ``DISTANCE_JITTER``), the axis tilted up to ``TILT_DEG``
   from vertical, aimed within ``AIM_JITTER`` of the tray size around its centre, rolled by at
   most ``ROLL_DEG``;
+* a rig of V > 1 calibrated cameras (``datagen.generate --layout cell --views V``): every
+  camera aims at the capture's one aim point from ``RIG_TILT_DEG`` (+- ``RIG_JITTER_DEG``) off
+  the vertical, the V of them evenly spread in azimuth (+- ``RIG_JITTER_DEG``), each at its own
+  jittered distance and roll: two cameras look at the tray from 30 degrees apart, a baseline
+  of about half the working distance (a stereo rig over a bin), where one camera's captures
+  move by 14-140 mm;
 * depth range of part centres (what detection assumes): from the nearest capture distance less
   the tray height and the tilt's rise across the tray, to the farthest distance plus that rise
   (:meth:`Cell.depth_range`).
@@ -48,6 +54,10 @@ DISTANCE_JITTER = 0.05
 TILT_DEG = 8.0
 AIM_JITTER = 0.05
 ROLL_DEG = 3.0
+#: A rig of several cameras: each camera's axis off the vertical, and the jitter of that tilt
+#: and of the cameras' azimuths (degrees).
+RIG_TILT_DEG = 15.0
+RIG_JITTER_DEG = 3.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,6 +72,7 @@ class Cell:
       tray_height: wall height, mm.
       max_height: the highest a part's centre gets above the floor (mm): a part of the
         largest diameter resting on the rim, ``tray_height`` + half that diameter.
+      views: cameras in the rig (1: one camera; V > 1: the rig of the module docstring).
     """
 
     resolution: tuple[int, int]
@@ -70,6 +81,12 @@ class Cell:
     tray_inner: tuple[float, float]
     tray_height: float
     max_height: float
+    views: int = 1
+
+    @property
+    def max_tilt_deg(self) -> float:
+        """The most a camera's axis leans from the vertical (degrees)."""
+        return TILT_DEG if self.views == 1 else RIG_TILT_DEG + RIG_JITTER_DEG
 
     @property
     def tray(self) -> L.Bin:
@@ -91,7 +108,7 @@ class Cell:
         """
         lo, hi = self.distance_range
         s = 0.5 * math.hypot(*self.tray_inner) * (1 + 2 * AIM_JITTER)
-        rise = s * math.sin(math.radians(TILT_DEG))
+        rise = s * math.sin(math.radians(self.max_tilt_deg))
         return lo - self.max_height - rise, hi + rise
 
     def to_json(self) -> dict:
@@ -100,13 +117,16 @@ class Cell:
                 "working_distance_mm": self.working_distance,
                 "distance_range_mm": list(self.distance_range),
                 "tray_inner_mm": list(self.tray_inner), "tray_height_mm": self.tray_height,
-                "max_part_height_mm": self.max_height,
+                "max_part_height_mm": self.max_height, "views": self.views,
                 "depth_range_mm": [zmin, zmax]}
 
 
 def design_cell(rng: np.random.Generator, diameters: Sequence[float],
-                resolution: tuple[int, int]) -> Cell:
-    """The cell of a dataset whose parts have ``diameters`` (mm), drawn from ``rng``."""
+                resolution: tuple[int, int], views: int = 1) -> Cell:
+    """The cell of a dataset whose parts have ``diameters`` (mm), seen by ``views`` cameras,
+    drawn from ``rng`` (the same draws whatever ``views``)."""
+    if views < 1:
+        raise ValueError(f"a cell needs at least one camera, got views={views}")
     d = np.asarray(diameters, np.float64)
     if d.size == 0 or not np.all(np.isfinite(d) & (d > 0)):
         raise ValueError(f"a cell needs the positive diameters (mm) of its parts, got {d}")
@@ -121,21 +141,34 @@ def design_cell(rng: np.random.Generator, diameters: Sequence[float],
                  max(TRAY_FILL * H * distance / K[1, 1], 1.3 * d.max()))
         cell = Cell((int(W), int(H)), tuple(tuple(float(v) for v in row) for row in K),
                     float(distance), (float(inner[0]), float(inner[1])), height,
-                    height + 0.5 * float(d.max()))
+                    height + 0.5 * float(d.max()), int(views))
         if cell.depth_range()[0] >= 0.4 * distance:
             return cell
         distance *= 1.25
 
 
 def capture(rng: np.random.Generator, cell: Cell) -> tuple[np.ndarray, np.ndarray]:
-    """One capture of the cell: (K [3, 3], T_cam_world [4, 4]) with the rig's jitter."""
+    """One capture of the cell: (K [V, 3, 3], T_cam_world [V, 4, 4]) of its V cameras, with
+    the rig's jitter (module docstring)."""
     K = np.asarray(cell.K, np.float64)
-    dist = rng.uniform(*cell.distance_range)
-    tilt = math.radians(rng.uniform(0.0, TILT_DEG))
-    azimuth = rng.uniform(0.0, 2 * math.pi)
-    aim = np.array([*(rng.uniform(-AIM_JITTER, AIM_JITTER, 2) * cell.tray_inner), 0.0])
-    direction = np.array([math.sin(tilt) * math.cos(azimuth), math.sin(tilt) * math.sin(azimuth),
-                          math.cos(tilt)])
-    # Image "up" is world -y (the tray's far side up), whatever the tilt; never parallel.
-    return K, cams.look_at_camera(aim + dist * direction, aim, up=(0.0, 1.0, 0.0),
-                                  roll_deg=rng.uniform(-ROLL_DEG, ROLL_DEG))
+    if cell.views == 1:
+        dist = rng.uniform(*cell.distance_range)
+        tilts = [math.radians(rng.uniform(0.0, TILT_DEG))]
+        azimuths = [rng.uniform(0.0, 2 * math.pi)]
+        aim = np.array([*(rng.uniform(-AIM_JITTER, AIM_JITTER, 2) * cell.tray_inner), 0.0])
+        dists = [dist]
+    else:
+        aim = np.array([*(rng.uniform(-AIM_JITTER, AIM_JITTER, 2) * cell.tray_inner), 0.0])
+        phase = rng.uniform(0.0, 2 * math.pi)
+        jitter = rng.uniform(-RIG_JITTER_DEG, RIG_JITTER_DEG, (cell.views, 2))
+        tilts = np.radians(RIG_TILT_DEG + jitter[:, 0])
+        azimuths = phase + 2 * np.pi * np.arange(cell.views) / cell.views + np.radians(jitter[:, 1])
+        dists = rng.uniform(*cell.distance_range, cell.views)
+    Ts = []
+    for tilt, azimuth, dist in zip(tilts, azimuths, dists, strict=True):
+        direction = np.array([math.sin(tilt) * math.cos(azimuth),
+                              math.sin(tilt) * math.sin(azimuth), math.cos(tilt)])
+        # Image "up" is world -y (the tray's far side up), whatever the tilt; never parallel.
+        Ts.append(cams.look_at_camera(aim + dist * direction, aim, up=(0.0, 1.0, 0.0),
+                                      roll_deg=rng.uniform(-ROLL_DEG, ROLL_DEG)))
+    return np.repeat(K[None], cell.views, 0), np.stack(Ts)

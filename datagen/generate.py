@@ -156,14 +156,16 @@ def mesh_split(name: str, val_fraction: float) -> str:
     return "val" if h < val_fraction else "train"
 
 
-def design_cell(pool: M.MeshPool, seed: int, resolution: tuple[int, int]) -> Cell:
-    """The robot cell of a ``--layout cell`` dataset: drawn from the seed and the diameters of
-    every usable mesh of the pool, so every split and shard of the dataset shares it."""
+def design_cell(pool: M.MeshPool, seed: int, resolution: tuple[int, int],
+                views: int = 1) -> Cell:
+    """The robot cell of a ``--layout cell`` dataset, seen by ``views`` cameras: drawn from the
+    seed and the diameters of every usable mesh of the pool, so every split and shard of the
+    dataset shares it."""
     diameters = [m.diameter for m in map(pool.load, range(len(pool))) if m is not None]
     if not diameters:
         raise ValueError("no usable mesh in --meshes: a cell needs its parts' diameters")
     rng = np.random.default_rng(np.random.SeedSequence([seed, _CELL_STREAM]))
-    return C.design_cell(rng, diameters, resolution)
+    return C.design_cell(rng, diameters, resolution, views)
 
 
 def split_candidates(pool: M.MeshPool, split: str, val_fraction: float) -> list[int]:
@@ -230,7 +232,11 @@ def update_models_info(models_dir: pathlib.Path, pool: M.MeshPool) -> int:
 
 def _manifest_identity(m: dict[str, Any]) -> dict[str, Any]:
     keys = ("generator", "version", "seed", "shard", "num_shards", "split", "config", "pool")
-    return {k: m.get(k) for k in keys}
+    out = {k: m.get(k) for k in keys}
+    cell = (out["config"] or {}).get("cell")
+    if cell is not None and "views" not in cell:  # written before cells had rigs: one camera
+        out["config"] = {**out["config"], "cell": {**cell, "views": 1}}
+    return out
 
 
 def check_siblings(out: pathlib.Path, manifest: dict[str, Any]) -> None:
@@ -396,8 +402,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     check_args(args)
     try:  # configuration errors: one clear line, no traceback
         pool = build_pool(args.meshes, args.seed, args.mesh_units, args.procedural_max_faces)
-        cell = design_cell(pool, args.seed, tuple(args.resolution)) if args.layout == "cell" \
-            else None
+        cell = design_cell(pool, args.seed, tuple(args.resolution), args.views) \
+            if args.layout == "cell" else None
         cfg = S.SceneConfig(
             resolution=(args.resolution[0], args.resolution[1]),
             spp=args.spp,
@@ -577,7 +583,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="dataset folder (one per shard)")
     p.add_argument("--num-scenes", type=int, required=True, help="scenes over all shards")
     p.add_argument("--images-per-scene", type=int, default=1, help="captures M per scene")
-    p.add_argument("--views", type=int, default=1, help="cameras V per capture (ring rig if > 1)")
+    p.add_argument("--views", type=int, default=1,
+                   help="cameras V per capture (if > 1: a ring rig, or with --layout cell the "
+                        "cell's rig: V cameras 15 degrees off the vertical, datagen/cell.py)")
     p.add_argument("--resolution", type=int, nargs=2, default=(640, 480), metavar=("W", "H"))
     p.add_argument("--spp", type=int, default=4,
                    help="path-tracing samples per pixel (denoised unless --no-denoise)")
@@ -585,8 +593,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--shard", type=int, default=0)
     p.add_argument("--num-shards", type=int, default=1)
     p.add_argument("--layout", choices=S.LAYOUTS, default="mixed",
-                   help="cell: one fixed camera above a tray at a working distance, written to "
-                        "OUT/cell.json (datagen/cell.py); the others: random views")
+                   help="cell: a fixed camera (or --views rig) above a tray at a working "
+                        "distance, written to OUT/cell.json (datagen/cell.py); the others: "
+                        "random views")
     p.add_argument("--split", choices=SPLITS, default="train")
     p.add_argument("--val-fraction", type=float, default=0.0,
                    help="share of meshes held out for --split val (0: no split)")

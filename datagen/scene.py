@@ -163,10 +163,11 @@ class SceneConfig:
         if (self.layout == "cell") != (self.cell is not None):
             raise ValueError("the cell layout needs its cell (datagen.cell.design_cell), and a "
                              "cell needs layout='cell'")
-        if self.cell is not None and (self.views != 1
+        if self.cell is not None and (self.views != self.cell.views
                                       or tuple(self.cell.resolution) != tuple(self.resolution)):
-            raise ValueError(f"a cell has one camera of {self.cell.resolution[0]}x"
-                             f"{self.cell.resolution[1]}: use views=1 and that resolution, got "
+            raise ValueError(f"the cell has {self.cell.views} camera(s) of "
+                             f"{self.cell.resolution[0]}x{self.cell.resolution[1]}: use "
+                             f"views={self.cell.views} and that resolution, got "
                              f"views={self.views}, resolution={self.resolution}")
 
     @property
@@ -845,8 +846,7 @@ def generate_scene(
             size = None if rng.random() < 0.5 else radius * rng.uniform(0.3, 1.5, 2)
             lamps.append((pos, dist, irradiance, color, size))
         if cfg.cell is not None:
-            K, T_cw = C.capture(rng, cfg.cell)
-            Ks, Ts = K[None], T_cw[None]
+            Ks, Ts = C.capture(rng, cfg.cell)
         elif cfg.views == 1:
             K = cams.sample_intrinsics(rng, W, H)
             aim, r = centre, radius

@@ -1,14 +1,17 @@
 """Robot-cell scenes (``datagen --layout cell``): the cell's camera and tray from its hand-derived
 definition, every part of generated scenes inside the recorded depth range, one cell per dataset
-(both splits), carried into the records, no lamp hiding the view, and the errors.
+(both splits), carried into the records, no lamp hiding the view, a rig of two cameras (its
+geometry, its dataset's groups and depth range), and the errors.
 
 References: the pinhole relation size = f d / z derived by hand; ground-truth poses read back
 from the written BOP files with ``threept_jax.data.bop``; ``cv2.projectPoints`` for where the
 tray centre lands; a float64 ray cast through every pixel for what a lamp hides.
 """
 
+import dataclasses
 import json
 import math
+import shutil
 
 import cv2
 import numpy as np
@@ -58,7 +61,7 @@ def test_captures_look_down_at_the_tray():
     rng = np.random.default_rng(1)
     cell = C.design_cell(rng, [50.0, 70.0], (320, 240))
     for _ in range(20):
-        K, T = C.capture(rng, cell)
+        (K,), (T,) = C.capture(rng, cell)
         R, t = T[:3, :3], T[:3, 3]
         # The optical axis (camera +z in the world) points down, within the tilt bound.
         down = -R[2, 2]
@@ -100,7 +103,7 @@ def test_lamps_never_hide_the_view():
     hw, centre = (120, 160), np.zeros(3)
     seen = borderline = 0
     for _ in range(300):
-        K, T = C.capture(rng, cell)
+        (K,), (T,) = C.capture(rng, cell)
         depth = float((T[:3, :3] @ centre + T[:3, 3])[2])
         el, az = math.radians(rng.uniform(40, 90)), rng.uniform(0, 2 * math.pi)
         dist = cell.working_distance * rng.uniform(0.5, 1.6)
@@ -152,6 +155,21 @@ def test_scenes_stay_in_the_recorded_depth_range(dataset):
         cell["working_distance_mm"])
 
 
+def test_a_dataset_from_before_rigs_resumes(dataset, tmp_path):
+    """A manifest written before cells had rigs (its cell without ``views``) is the one-camera
+    cell: the same arguments resume it rather than being refused as other arguments."""
+    out = tmp_path / "old"
+    shutil.copytree(dataset, out)
+    path = out / "train_pbr" / "manifest.json"
+    manifest = json.loads(path.read_text())
+    del manifest["config"]["cell"]["views"]
+    path.write_text(json.dumps(manifest))
+    images = sorted((out / "train_pbr").rglob("*.png"))
+    generate.main(ARGS + ["--out", str(out), "--num-scenes", "3", "--images-per-scene", "2"])
+    assert sorted((out / "train_pbr").rglob("*.png")) == images
+    assert json.loads(path.read_text())["config"]["cell"]["views"] == 1
+
+
 def test_pack_carries_the_cell_and_refuses_another(dataset, tmp_path):
     records = tmp_path / "records"
     pack.main(["--scenes", str(dataset / "train_pbr"), "--out", str(records), "--no-banks",
@@ -166,15 +184,70 @@ def test_pack_carries_the_cell_and_refuses_another(dataset, tmp_path):
                    "--no-banks", "--quiet"])
 
 
-def test_bad_cell_options_and_files(tmp_path, capsys):
+def test_a_rig_sees_one_aim_point_from_cameras_apart():
+    """Two cameras: each axis RIG_TILT_DEG +- RIG_JITTER_DEG off the vertical, on opposite
+    sides (azimuths 180 +- 2 jitter degrees apart), both through one aim point on the floor
+    (the rays intersected with z = 0 in float64), the baseline what that geometry gives."""
+    rng = np.random.default_rng(4)
+    diameters = [60.0, 80.0, 100.0, 110.0]
+    one = C.design_cell(np.random.default_rng(9), diameters, (320, 240))
+    cell = C.design_cell(np.random.default_rng(9), diameters, (320, 240), views=2)
+    assert dataclasses.replace(cell, views=1) == one  # the same cell, another rig
+    lo, hi = cell.distance_range
+    tilt = math.radians(C.RIG_TILT_DEG + C.RIG_JITTER_DEG)
+    s = 0.5 * math.hypot(*cell.tray_inner) * (1 + 2 * C.AIM_JITTER)
+    assert cell.depth_range() == pytest.approx((lo - cell.max_height - s * math.sin(tilt),
+                                                hi + s * math.sin(tilt)), rel=1e-12)
+    assert cell.depth_range()[1] > one.depth_range()[1]  # a steeper view of the tray
+    for _ in range(20):
+        Ks, Ts = C.capture(rng, cell)
+        assert Ks.shape == (2, 3, 3) and Ts.shape == (2, 4, 4)
+        centres, aims, azimuths = [], [], []
+        for T in Ts:
+            R, t = T[:3, :3], T[:3, 3]
+            centre, axis = -R.T @ t, R[2]  # the optical centre and axis in the world
+            off = math.degrees(math.acos(-axis[2]))
+            assert C.RIG_TILT_DEG - C.RIG_JITTER_DEG - 1e-9 <= off
+            assert off <= C.RIG_TILT_DEG + C.RIG_JITTER_DEG + 1e-9
+            aims.append(centre - centre[2] / axis[2] * axis)
+            centres.append(centre)
+            azimuths.append(math.atan2(centre[1] - aims[-1][1], centre[0] - aims[-1][0]))
+            assert lo - 1e-6 <= np.linalg.norm(centre - aims[-1]) <= hi + 1e-6
+        np.testing.assert_allclose(aims[0], aims[1], atol=1e-6)
+        assert np.all(np.abs(aims[0][:2]) <= C.AIM_JITTER * np.asarray(cell.tray_inner))
+        apart = abs((math.degrees(azimuths[0] - azimuths[1]) + 180) % 360 - 180)
+        assert 180 - 2 * C.RIG_JITTER_DEG - 1e-6 <= apart
+        baseline = np.linalg.norm(centres[0] - centres[1])
+        lo_tilt = math.radians(C.RIG_TILT_DEG - C.RIG_JITTER_DEG)
+        assert baseline >= 2 * lo * math.sin(lo_tilt) * math.cos(math.radians(C.RIG_JITTER_DEG))
+
+
+def test_a_rig_dataset_groups_its_views(tmp_path):
+    out = tmp_path / "rig"
+    generate.main(ARGS + ["--out", str(out), "--num-scenes", "1", "--images-per-scene", "2",
+                          "--views", "2", "--split", "val"])
+    cell = bop.load_cell(out)
+    assert cell["views"] == 2
+    groups = bop.load_multiview_targets(out / "test_targets_multiview_bop25.json")
+    assert [(g.scene_id, [im for _, im in g.views]) for g in groups] == [(0, [0, 1]), (0, [2, 3])]
+    scene = bop.BopDataset(out).split("val_pbr").scene(0)
+    zmin, zmax = cell["depth_range_mm"]
+    for im in range(4):
+        assert all(zmin <= g.T_cam_obj[2, 3] <= zmax for g in scene.gt[im])
+    # The two views of a capture see the same parts from cameras far apart.
+    centres = [-(T[:3, :3].T @ T[:3, 3]) for T in (scene.cameras[i].T_cam_world for i in (0, 1))]
+    assert np.linalg.norm(centres[0] - centres[1]) > 0.3 * cell["working_distance_mm"]
+    assert {g.obj_id for g in scene.gt[0]} == {g.obj_id for g in scene.gt[1]}
+
+
+def test_bad_cell_options_and_files(tmp_path):
     cell = C.design_cell(np.random.default_rng(0), [50.0], (64, 48))
     with pytest.raises(ValueError, match="views=1"):
         S.SceneConfig(resolution=(64, 48), layout="cell", cell=cell, views=3)
     with pytest.raises(ValueError, match="needs its cell"):
         S.SceneConfig(resolution=(64, 48), layout="cell")
-    with pytest.raises(SystemExit):
-        generate.main(ARGS + ["--out", str(tmp_path / "mv"), "--num-scenes", "1", "--views", "2"])
-    assert "views=1" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="at least one camera"):
+        C.design_cell(np.random.default_rng(0), [50.0], (64, 48), views=0)
     (tmp_path / bop.CELL_FILE).write_text(json.dumps({"depth_range_mm": [500, 100]}))
     with pytest.raises(ValueError, match="cell.json.*zmin <= zmax"):
         bop.load_cell(tmp_path)
