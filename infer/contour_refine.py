@@ -10,6 +10,9 @@ hypothesis of every instance in one compiled call, each hypothesis kept at its s
 refined pose scores lower, and keeps each instance's best-scored hypothesis. Instances hide
 each other's lines: an occluder map of every instance at its start pose is rendered first.
 Masks are the visible silhouettes at the kept poses (each pixel to the nearest instance).
+A part with near-symmetric turns (a gear's teeth: :mod:`threept_jax.geometry.turns`, found
+once per mesh and cached) is then turned to whichever of them the edges inside its outline
+show best (:mod:`threept_jax.pipeline.turns`): the outline cannot tell them apart.
 
 Compiled once per process per (instance bin, hypothesis bin, views, image size, object count,
 settings), whichever refiner calls it.
@@ -30,6 +33,7 @@ import numpy as np
 from infer.refine import RefinedPose, pad_instances
 from threept_jax.data.files import atomic_savez
 from threept_jax.data.refiner_input import RefinerMeshes
+from threept_jax.geometry.turns import near_symmetry_turns
 from threept_jax.geometry.validate import scale_intrinsics
 from threept_jax.pipeline.contour import (
     ContourSettings,
@@ -39,6 +43,8 @@ from threept_jax.pipeline.contour import (
     stack_contours,
 )
 from threept_jax.pipeline.refine_loop import pad_to_bin
+from threept_jax.pipeline.turns import choose_turn
+from threept_jax.render import Renderer
 from threept_jax.render.mesh import prepare_mesh
 
 #: Longest side of the occluder maps (they only decide which line samples another instance
@@ -57,12 +63,14 @@ def hash_mesh(h, mesh) -> None:
         h.update(np.ascontiguousarray(a).tobytes())
 
 
-def _cached_contours(mesh, cache: pathlib.Path | None) -> dict:
-    """``mesh_contours(mesh)``, read from / written to ``cache`` keyed by the mesh's arrays."""
+def _cached(make, key: str, mesh, cache: pathlib.Path | None, extra: bytes = b"") -> dict:
+    """``make()`` (a dict of arrays), read from / written to ``cache`` keyed by ``key``, the
+    mesh's arrays and ``extra``."""
     if cache is None:
-        return mesh_contours(mesh)
-    h = hashlib.sha256(f"contours-v{CONTOUR_CACHE_VERSION}".encode())
+        return make()
+    h = hashlib.sha256(key.encode())
     hash_mesh(h, mesh)
+    h.update(extra)
     path = cache / f"{h.hexdigest()[:32]}.npz"
     if path.exists():
         try:
@@ -70,10 +78,25 @@ def _cached_contours(mesh, cache: pathlib.Path | None) -> dict:
                 return {k: z[k] for k in z.files}
         except (OSError, ValueError):  # a damaged file is rebuilt
             pass
-    out = mesh_contours(mesh)
+    out = make()
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_savez(path, **out)
     return out
+
+
+def _cached_contours(mesh, cache: pathlib.Path | None) -> dict:
+    """``mesh_contours(mesh)``, cached by the mesh's arrays."""
+    return _cached(lambda: mesh_contours(mesh), f"contours-v{CONTOUR_CACHE_VERSION}", mesh,
+                   cache)
+
+
+def _cached_turns(obj, cache: pathlib.Path | None) -> np.ndarray:
+    """The object's near-symmetric turns [M, 4, 4], cached by its mesh and symmetries."""
+    symmetries = getattr(obj, "symmetries", None)
+    extra = b"" if symmetries is None else np.ascontiguousarray(symmetries, np.float64).tobytes()
+    return _cached(lambda: {"turns": near_symmetry_turns(obj.mesh.vertices, obj.mesh.faces,
+                                                         symmetries)},
+                   "turns-v1", obj.mesh, cache, extra)["turns"]
 
 
 #: Traces of :func:`_refine_instances` in this process (tests check that a call with known shapes
@@ -111,11 +134,13 @@ class ContourRefiner:
     ``objects``: anything with ``obj_id`` and ``mesh`` (:class:`infer.refine.RefineObject`,
     :class:`infer.onboarding.OnboardedObject`). Building it renders each mesh's contours
     (:func:`~threept_jax.pipeline.contour.mesh_contours`, a few seconds per mesh on 2 CPU
-    cores), cached under ``cache_dir`` (None: no disk cache) by the mesh's arrays.
+    cores), cached under ``cache_dir`` (None: no disk cache) by the mesh's arrays, and finds its
+    near-symmetric turns (about a second; ``turns=False``: none, the refined pose as it is,
+    which ``bench/turns.py`` times against).
     """
 
     def __init__(self, objects: Sequence, settings: ContourSettings | None = None,
-                 cache_dir: str | os.PathLike | None = None):
+                 cache_dir: str | os.PathLike | None = None, turns: bool = True):
         if not objects:
             raise ValueError("ContourRefiner needs at least one object")
         self.settings = settings or ContourSettings()
@@ -125,6 +150,15 @@ class ContourRefiner:
         self.model = stack_contours([_cached_contours(o.mesh, cache) for o in objects])
         self.meshes = RefinerMeshes.from_meshes(
             {o.obj_id: prepare_mesh(o.mesh, max_faces=2048, texture_size=None) for o in objects})
+        # Parts with near-symmetric turns: the turns, a renderer of their edges, their box.
+        self.turns = {}
+        for o in objects if turns else ():
+            turns = _cached_turns(o, cache)
+            if len(turns):
+                lo, hi = o.mesh.bbox
+                corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                                    for z in (lo[2], hi[2])], np.float64)
+                self.turns[o.obj_id] = (turns, Renderer(o.mesh), corners)
 
     def __call__(self, images: Sequence[np.ndarray], Ks: np.ndarray,
                  T_cam_world: np.ndarray | None, obj_ids: Sequence[int],
@@ -152,6 +186,10 @@ class ContourRefiner:
         for i in range(len(obj_ids)):
             start = np.asarray(hyps[i, 0], np.float64)
             pose = np.asarray(poses[i], np.float64)
+            if int(obj_ids[i]) in self.turns:
+                turns, renderer, corners = self.turns[int(obj_ids[i])]
+                pose = choose_turn(renderer, corners, pose, turns, images, Ks,
+                                   np.asarray(T_cw, np.float64))
             out.append(RefinedPose(obj_id=int(obj_ids[i]), T_world_obj=pose,
                                    score=float(scores[i]),
                                    history=np.stack([start, pose, pose]),

@@ -306,3 +306,28 @@ def test_contours_are_cached_per_mesh_and_a_damaged_file_is_rebuilt(tmp_path, mo
     assert len(calls) == 2 and np.array_equal(c["points"], a["points"])
     CR._cached_contours(_cube(side=50.0), tmp_path)  # another mesh, another file
     assert len(calls) == 3 and len(list(tmp_path.glob("*.npz"))) == 2
+
+
+def test_turns_are_cached_per_mesh_and_symmetries(tmp_path, monkeypatch):
+    """The near-symmetric turns are found once per mesh and declared symmetries: the box's
+    three half-turns (by hand), none once they are declared, each set its own file."""
+    import infer.contour_refine as CR
+
+    calls = []
+    real = CR.near_symmetry_turns
+
+    def counted(*a, **kw):
+        calls.append(1)
+        return real(*a, **kw)
+
+    monkeypatch.setattr(CR, "near_symmetry_turns", counted)
+    box = RefineObject(1, _cube(), np.eye(4)[None])
+    a = CR._cached_turns(box, tmp_path)
+    b = CR._cached_turns(box, tmp_path)
+    assert len(calls) == 1 and a.shape == (3, 4, 4)
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(np.abs(np.einsum("mii->mi", a[:, :3, :3])),
+                               np.ones((3, 3)), atol=1e-9)  # diag(+-1): about the box's axes
+    declared = RefineObject(1, _cube(), np.concatenate([np.eye(4)[None], a]))
+    assert len(CR._cached_turns(declared, tmp_path)) == 0
+    assert len(calls) == 2 and len(list(tmp_path.glob("*.npz"))) == 2
