@@ -15,7 +15,7 @@ each (cold: compilation included), the median of the others (warm) in seconds pe
 warm ratio, and how many instances the check turned. Its accuracy is the BOP 6D AP of
 ``python -m infer bop ... --evaluate`` (docs/benchmarks.md, "Near-symmetric turns").
 
-    python bench/turns.py [--data DIR] [--split test] [--images 8] [--max-detections 12]
+    python bench/turns.py [--data DIR] [--split val_pbr] [--images 8] [--max-detections 12]
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from threept_jax.data import bop  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=pathlib.Path, default=ROOT / "runs/demo/adapted/data/test")
-    ap.add_argument("--split", default="test")
+    ap.add_argument("--split", default="val_pbr")
     ap.add_argument("--images", type=int, default=8)
     ap.add_argument("--max-detections", type=int, default=12)
     ap.add_argument("--cache-dir", type=pathlib.Path, default=DEFAULT_CACHE)
@@ -50,8 +50,7 @@ def main() -> None:
         sys.exit(f"{args.data} holds no BOP dataset (models/); run `make demo` first or pass "
                  "--data DIR --split SPLIT")
     ds = bop.BopDataset(args.data)
-    split = ds.split(f"{args.split}_pbr" if (args.data / f"{args.split}_pbr").is_dir()
-                     else args.split)
+    split = ds.split(args.split)
     keys = [(s, i) for s in split.scene_ids for i in split.scene(s).image_ids][:args.images]
     cell = bop.load_cell(args.data)
     depth = None if cell is None else tuple(cell["depth_range_mm"])
