@@ -153,12 +153,12 @@ class ContourRefiner:
         # Parts with near-symmetric turns: the turns, a renderer of their edges, their box.
         self.turns = {}
         for o in objects if turns else ():
-            turns = _cached_turns(o, cache)
-            if len(turns):
+            found = _cached_turns(o, cache)
+            if len(found):
                 lo, hi = o.mesh.bbox
                 corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                                     for z in (lo[2], hi[2])], np.float64)
-                self.turns[o.obj_id] = (turns, Renderer(o.mesh), corners)
+                self.turns[o.obj_id] = (found, Renderer(o.mesh), corners)
 
     def __call__(self, images: Sequence[np.ndarray], Ks: np.ndarray,
                  T_cam_world: np.ndarray | None, obj_ids: Sequence[int],
